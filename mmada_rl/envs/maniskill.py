@@ -1,0 +1,229 @@
+"""ManiSkill3 tasks (SAPIEN, CPU physics, CPU Vulkan rendering) as TorchRL environments.
+
+``make_env`` returns a :class:`~torchrl.envs.TransformedEnv` whose tensordicts follow
+TorchRL's canonical VLA schema::
+
+    observation: {image: uint8 [3, H, W], state: float32 [S]}
+    language_instruction: str
+    action: float32 [A]
+    next: {observation, reward, done, terminated, truncated, success, ...}
+    step_count: int64 [1]
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torchrl.data import Binary
+from torchrl.envs import Compose, GymWrapper, ParallelEnv, RenameTransform, StepCounter, TransformedEnv
+from torchrl.envs.gym_like import default_info_dict_reader
+
+from mmada_rl.envs.instruction import InstructionTransform
+from mmada_rl.envs.tasks import task_spec
+from mmada_rl.keys import IMAGE_KEY, STATE_KEY
+from mmada_rl.envs.vulkan import VulkanUnavailableError, is_render_device_error
+
+ObsMode = Literal["rgb", "state"]
+RewardMode = Literal["dense", "sparse"]
+
+#: Our reward names mapped to ManiSkill's reward modes.
+_REWARD_MODES = {"dense": "normalized_dense", "sparse": "sparse"}
+_OBS_MODES = ("rgb", "state")
+
+
+@dataclass
+class EnvConfig:
+    """How to build a ManiSkill3 task as a TorchRL env.
+
+    Attributes:
+        task: ManiSkill task id (see :mod:`mmada_rl.envs.tasks`).
+        obs_mode: ``"rgb"``: a camera image plus proprioception (and the goal
+            position where the task defines one); ``"state"``: ManiSkill's full
+            privileged state vector, no image.
+        image_size: side of the square camera image, pixels.
+        control_mode: ManiSkill controller, e.g. ``"pd_ee_delta_pose"``,
+            ``"pd_joint_delta_pos"``, ``"pd_joint_pos"``.
+        reward: ``"dense"`` (ManiSkill's normalised dense reward, in [0, 1]) or ``"sparse"``.
+        max_episode_steps: episode length; ``None`` takes the task registry's value.
+        ignore_terminations: keep stepping after success until truncation
+            (ManiSkill's protocol for ``success_at_end``).
+        num_workers: ``ParallelEnv`` workers; 1 builds a single env.
+    """
+
+    task: str = "PickCube-v1"
+    obs_mode: ObsMode = "rgb"
+    image_size: int = 64
+    control_mode: str = "pd_ee_delta_pose"
+    reward: RewardMode = "dense"
+    max_episode_steps: int | None = None
+    ignore_terminations: bool = False
+    num_workers: int = 1
+
+    def __post_init__(self) -> None:
+        if self.obs_mode not in _OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {_OBS_MODES}, got {self.obs_mode!r}.")
+        if self.reward not in _REWARD_MODES:
+            raise ValueError(f"reward must be 'dense' or 'sparse', got {self.reward!r}.")
+        if not isinstance(self.image_size, int) or not 16 <= self.image_size <= 512:
+            raise ValueError(f"image_size must be an int in [16, 512] pixels, got {self.image_size!r}.")
+        if self.max_episode_steps is not None and self.max_episode_steps < 1:
+            raise ValueError(f"max_episode_steps must be positive, got {self.max_episode_steps!r}.")
+        if self.num_workers < 1:
+            raise ValueError(f"num_workers must be >= 1, got {self.num_workers!r}.")
+        task_spec(self.task)  # unknown task ids fail here, with the list of supported ones
+
+    @property
+    def episode_steps(self) -> int | None:
+        """The episode length actually used."""
+        return self.max_episode_steps or task_spec(self.task).max_episode_steps
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class CanonicalObservation(gym.Wrapper):
+    """Unbatched ManiSkill observations → ``{"camera": CHW uint8, "proprio": float32}``.
+
+    (:func:`make_env` then renames them to the canonical ``("observation", "image")``
+    and ``("observation", "state")``; TorchRL's ``GymWrapper`` would rename a
+    ``"state"`` entry to ``"observation"`` itself, hence the neutral names.)
+
+    Applied after ManiSkill's ``CPUGymWrapper`` (numpy, unbatched). Also turns the
+    ``success`` info entry into an array, which TorchRL's info reader requires.
+    """
+
+    def __init__(self, env: gym.Env, obs_mode: ObsMode):
+        super().__init__(env)
+        self.obs_mode = obs_mode
+        space = env.observation_space
+        if obs_mode == "rgb":
+            h, w, c = space["rgb"].shape
+            self.observation_space = gym.spaces.Dict(
+                camera=gym.spaces.Box(0, 255, (c, h, w), np.uint8),
+                proprio=gym.spaces.Box(-np.inf, np.inf, space["state"].shape, np.float32),
+            )
+        else:
+            self.observation_space = gym.spaces.Dict(proprio=gym.spaces.Box(-np.inf, np.inf, space.shape, np.float32))
+
+    def _obs(self, obs):
+        if self.obs_mode == "rgb":
+            image = np.ascontiguousarray(np.moveaxis(obs["rgb"], -1, 0))
+            return {"camera": image, "proprio": obs["state"].astype(np.float32)}
+        return {"proprio": np.asarray(obs, dtype=np.float32)}
+
+    @staticmethod
+    def _info(info: dict) -> dict:
+        info = dict(info)
+        info["success"] = np.asarray([bool(info.get("success", False))])
+        return info
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return self._obs(obs), self._info(info)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self._obs(obs), float(reward), bool(terminated), bool(truncated), self._info(info)
+
+
+class ManiSkillEnv(GymWrapper):
+    """TorchRL's ``GymWrapper`` for one unbatched ManiSkill env.
+
+    With ``num_envs == 1`` TorchRL assumes a batch of ``[1]``, while ManiSkill's
+    ``CPUGymWrapper`` returns unbatched data; an empty batch size fixes the spec check.
+    """
+
+    def _get_batch_size(self, env):  # noqa: D401 - TorchRL hook
+        return torch.Size([])
+
+
+def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
+    """The ManiSkill gym env with our observation layout, unbatched, numpy.
+
+    Raises:
+        VulkanUnavailableError: SAPIEN found no usable Vulkan device.
+    """
+    import mani_skill.envs  # noqa: F401  (registers the tasks)
+    from mani_skill.utils.wrappers import FlattenRGBDObservationWrapper
+    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+
+    kwargs = dict(
+        obs_mode=cfg.obs_mode,
+        sim_backend="physx_cpu",
+        render_backend="cpu",
+        control_mode=cfg.control_mode,
+        reward_mode=_REWARD_MODES[cfg.reward],
+        render_mode=render_mode,
+    )
+    if cfg.obs_mode == "rgb":
+        kwargs["sensor_configs"] = dict(width=cfg.image_size, height=cfg.image_size)
+    if cfg.episode_steps is not None:
+        kwargs["max_episode_steps"] = cfg.episode_steps
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            env = gym.make(cfg.task, **kwargs)
+    except RuntimeError as err:
+        if is_render_device_error(err):
+            raise VulkanUnavailableError(str(err)) from None
+        raise
+    except (AssertionError, KeyError) as err:
+        raise ValueError(f"ManiSkill could not build {cfg.task!r} with control_mode={cfg.control_mode!r}: {err}") from err
+    if cfg.obs_mode == "rgb":
+        env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
+    env = CPUGymWrapper(env, ignore_terminations=cfg.ignore_terminations)
+    return CanonicalObservation(env, cfg.obs_mode)
+
+
+def _make_single_env(cfg: EnvConfig) -> TransformedEnv:
+    base = ManiSkillEnv(make_gym_env(cfg))
+    base.set_info_dict_reader(default_info_dict_reader(["success"], spec=[Binary(shape=(1,), dtype=torch.bool)]))
+    keys = {"camera": IMAGE_KEY, "proprio": STATE_KEY}
+    if cfg.obs_mode != "rgb":
+        keys.pop("camera")
+    nest = RenameTransform(in_keys=list(keys), out_keys=list(keys.values()))
+    return TransformedEnv(
+        base, Compose(nest, InstructionTransform(task_spec(cfg.task).instruction), StepCounter())
+    )
+
+
+def make_env(task: str | EnvConfig = "PickCube-v1", **overrides) -> TransformedEnv | ParallelEnv:
+    """Build a ManiSkill3 task as a TorchRL env.
+
+    Args:
+        task: a task id, or a full :class:`EnvConfig`.
+        **overrides: :class:`EnvConfig` fields (``obs_mode``, ``image_size``,
+            ``control_mode``, ``reward``, ``num_workers``, ...).
+
+    Returns:
+        a ``TransformedEnv`` (``num_workers == 1``) or a ``ParallelEnv`` of them.
+
+    Examples:
+        >>> env = make_env("PickCube-v1", image_size=64)
+        >>> td = env.reset()
+        >>> td["observation", "image"].shape
+        torch.Size([3, 64, 64])
+        >>> td["language_instruction"]
+        'pick up the red cube and move it to the green goal'
+    """
+    cfg = task if isinstance(task, EnvConfig) else EnvConfig(task=task, **overrides)
+    if isinstance(task, EnvConfig) and overrides:
+        cfg = EnvConfig(**{**cfg.to_dict(), **overrides})
+    if cfg.num_workers == 1:
+        return _make_single_env(cfg)
+    # ``spawn`` (ParallelEnv's default): ``fork`` deadlocks SAPIEN at the first reset.
+    return ParallelEnv(cfg.num_workers, _EnvFactory(cfg), mp_start_method="spawn")
+
+
+class _EnvFactory:
+    """Picklable constructor for ``ParallelEnv`` workers."""
+
+    def __init__(self, cfg: EnvConfig):
+        self.cfg = EnvConfig(**{**cfg.to_dict(), "num_workers": 1})
+
+    def __call__(self) -> TransformedEnv:
+        return _make_single_env(self.cfg)

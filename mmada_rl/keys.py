@@ -1,0 +1,56 @@
+"""TensorDict keys of mmada_rl.
+
+The canonical VLA keys come from TorchRL (``torchrl.data.vla.schema``) and are
+re-exported here so that every module imports keys from one place. Keys that
+TorchRL's schema does not define (goal image, trajectory bookkeeping, success)
+are ours and live only in this module.
+"""
+from __future__ import annotations
+
+from torchrl.data.vla.schema import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    ACTION_KEY,
+    ACTION_TOKENS_KEY,
+    IMAGE_KEY,
+    INSTRUCTION_KEY,
+    OBSERVATION_KEY,
+    STATE_KEY,
+    VLA_ACTION_KEY,
+)
+
+__all__ = [
+    "ACTION_CHUNK_KEY",
+    "ACTION_IS_PAD_KEY",
+    "ACTION_KEY",
+    "ACTION_TOKENS_KEY",
+    "IMAGE_KEY",
+    "INSTRUCTION_KEY",
+    "OBSERVATION_KEY",
+    "STATE_KEY",
+    "VLA_ACTION_KEY",
+    "GOAL_IMAGE_KEY",
+    "GOAL_IS_CLIPPED_KEY",
+    "EPISODE_KEY",
+    "STEP_KEY",
+    "SUCCESS_KEY",
+    "NEXT_SUCCESS_KEY",
+    "INSTRUCTION_ID_KEY",
+    "SEED_KEY",
+]
+
+#: Future observation ``o_{t+K}`` that the policy predicts with the chunk, uint8 ``[*B, 3, H, W]``.
+GOAL_IMAGE_KEY = ("goal", "image")
+#: True where ``t+K`` ran past the episode's last frame and the goal was clipped to it.
+GOAL_IS_CLIPPED_KEY = ("goal", "is_clipped")
+#: Trajectory id of every stored transition (what ``SliceSampler(traj_key=...)`` reads).
+EPISODE_KEY = "episode"
+#: Index of the transition inside its episode, starting at 0.
+STEP_KEY = "step_count"
+#: The task's own success flag for the state reached after the action.
+SUCCESS_KEY = "success"
+NEXT_SUCCESS_KEY = ("next", "success")
+#: Index of the episode's instruction in the buffer metadata's ``instructions`` list.
+INSTRUCTION_ID_KEY = "instruction_id"
+#: Environment seed the episode was reset with.
+SEED_KEY = "seed"
