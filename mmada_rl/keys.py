@@ -37,6 +37,11 @@ __all__ = [
     "NEXT_SUCCESS_KEY",
     "INSTRUCTION_ID_KEY",
     "SEED_KEY",
+    "IMAGE_TOKENS_KEY",
+    "GOAL_TOKENS_KEY",
+    "INSTRUCTION_TOKENS_KEY",
+    "SEQUENCE_KEY",
+    "NOISE_LEVEL_KEY",
 ]
 
 #: Future observation ``o_{t+K}`` that the policy predicts with the chunk, uint8 ``[*B, 3, H, W]``.
@@ -54,3 +59,15 @@ NEXT_SUCCESS_KEY = ("next", "success")
 INSTRUCTION_ID_KEY = "instruction_id"
 #: Environment seed the episode was reset with.
 SEED_KEY = "seed"
+
+# -- tokens ------------------------------------------------------------------
+#: Image-tokenizer codes of the current observation, long ``[*B, H', W']`` (local code ids).
+IMAGE_TOKENS_KEY = ("observation", "image_tokens")
+#: Image-tokenizer codes of the goal image ``o_{t+K}``, long ``[*B, H', W']``.
+GOAL_TOKENS_KEY = ("goal", "tokens")
+#: Text-tokenizer ids of the instruction, long ``[*B, L_text]`` (padded).
+INSTRUCTION_TOKENS_KEY = "instruction_tokens"
+#: Unified-vocabulary sequence ``[lang | obs | proprio | goal | actions]``, long ``[*B, L]``.
+SEQUENCE_KEY = ("sequence", "ids")
+#: Noise level (masking ratio) of each sample in the forward process, float ``[*B]``.
+NOISE_LEVEL_KEY = ("sequence", "noise_level")
