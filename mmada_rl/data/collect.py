@@ -1,0 +1,126 @@
+"""Fill a buffer directory with episodes from a source, resumably."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm.auto import tqdm
+
+from mmada_rl.data.buffer import DemoBuffer
+from mmada_rl.data.metadata import BufferMetadata
+from mmada_rl.data.sources import PlannerSource, PolicySource
+from mmada_rl.envs.maniskill import EnvConfig
+from mmada_rl.envs.tasks import task_spec
+
+SOURCES = ("planner", "random")
+
+
+@dataclass
+class CollectResult:
+    """What a collection run did."""
+
+    buffer: DemoBuffer
+    new_episodes: int
+    attempts: int
+    successes: int
+    steps: int
+    seconds: float
+    failures: dict[str, int]
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.attempts if self.attempts else float("nan")
+
+
+def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None):
+    """The episode source named ``policy`` (``"planner"``, ``"random"``), or a TorchRL policy object."""
+    if torchrl_policy is not None:
+        return PolicySource(cfg, torchrl_policy)
+    if policy == "planner":
+        return PlannerSource(cfg)
+    if policy == "random":
+        return PolicySource(cfg, None)
+    raise ValueError(f"unknown --policy {policy!r}; choose one of {SOURCES}.")
+
+
+def collect(
+    out: str | Path,
+    cfg: EnvConfig,
+    *,
+    episodes: int,
+    policy: str = "planner",
+    torchrl_policy=None,
+    only_success: bool | None = None,
+    seed: int = 0,
+    max_attempts: int | None = None,
+    progress: bool = True,
+) -> CollectResult:
+    """Collect until ``out`` holds ``episodes`` episodes; resume what is there.
+
+    Args:
+        out: buffer directory; created, or resumed when it already holds a
+            buffer of the same task, control mode, observation mode and image size.
+        cfg: the environment the episodes are recorded in.
+        episodes: total number of episodes the buffer should hold.
+        policy: ``"planner"`` (ManiSkill's motion planner, converted to
+            ``cfg.control_mode``) or ``"random"``.
+        torchrl_policy: any TorchRL policy module; overrides ``policy``.
+        only_success: keep only episodes that reach success (default: True for
+            the planner, False otherwise).
+        seed: first env seed of a new buffer (a resumed one continues from its ``next_seed``).
+        max_attempts: stop after this many tries in this run (default: 3 × missing episodes + 10).
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be positive, got {episodes}.")
+    only_success = (policy == "planner" and torchrl_policy is None) if only_success is None else only_success
+    source = make_source(cfg, policy, torchrl_policy)
+    meta = BufferMetadata(
+        task=cfg.task,
+        control_mode=cfg.control_mode,
+        obs_mode=cfg.obs_mode,
+        image_size=cfg.image_size if cfg.obs_mode == "rgb" else 0,
+        action_dim=source.action_dim,
+        state_dim=source.state_dim,
+        reward=cfg.reward,
+        max_episode_steps=cfg.episode_steps,
+        source=source.name,
+        next_seed=seed,
+    )
+    buffer = DemoBuffer.open_or_create(out, meta, capacity=episodes * (cfg.episode_steps or 200))
+    missing = episodes - buffer.metadata.num_episodes
+    max_attempts = max_attempts if max_attempts is not None else 3 * max(missing, 0) + 10
+    instruction = task_spec(cfg.task).instruction
+    result = CollectResult(buffer, 0, 0, 0, 0, 0.0, {})
+    start = time.perf_counter()
+    bar = tqdm(total=episodes, initial=buffer.metadata.num_episodes, unit="ep", desc=f"collect {cfg.task}", disable=not progress)
+    try:
+        while buffer.metadata.num_episodes < episodes and result.attempts < max_attempts:
+            env_seed = buffer.metadata.next_seed
+            attempt = source(env_seed)
+            result.attempts += 1
+            result.successes += int(attempt.success)
+            buffer.metadata.attempts += 1
+            buffer.metadata.successes += int(attempt.success)
+            buffer.metadata.next_seed = env_seed + 1
+            keep = attempt.episode is not None and (attempt.success or not only_success)
+            if keep:
+                buffer.add_episode(attempt.episode, seed=env_seed, instruction=instruction)
+                result.new_episodes += 1
+                result.steps += attempt.episode.shape[0]
+                bar.update(1)
+            else:
+                reason = attempt.reason or "no success"
+                result.failures[reason] = result.failures.get(reason, 0) + 1
+                buffer.save_metadata()
+            elapsed = time.perf_counter() - start
+            bar.set_postfix(
+                success=f"{result.success_rate:.0%}",
+                steps_per_s=f"{result.steps / max(elapsed, 1e-9):.1f}",
+                ep_per_min=f"{60 * result.new_episodes / max(elapsed, 1e-9):.1f}",
+            )
+    finally:
+        bar.close()
+        result.seconds = time.perf_counter() - start
+        source.close()
+    return result

@@ -1,0 +1,199 @@
+"""Where episodes come from: ManiSkill's motion planners, replayed action files, TorchRL policies.
+
+Every source returns an :class:`Attempt`: the episode in TorchRL's rollout
+layout (or ``None`` when it failed) and why it failed.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+
+from mmada_rl.data.recording import StepRecorder
+from mmada_rl.envs.maniskill import EnvConfig, make_gym_env
+from mmada_rl.envs.tasks import task_spec
+
+#: The control mode ManiSkill's motion-planning solutions command.
+PLANNER_CONTROL_MODE = "pd_joint_pos"
+
+
+@dataclass
+class Attempt:
+    """One try at an episode.
+
+    Attributes:
+        episode: the ``[T]`` tensordict, or ``None`` if nothing usable was produced.
+        success: the task's own success was reached (the episode stops at the first success).
+        reason: why the attempt is not kept, empty when it is.
+    """
+
+    episode: TensorDictBase | None
+    success: bool
+    reason: str = ""
+
+
+class _ActionLog(gym.Wrapper):
+    """Keeps the actions a planner sends, so they can be replayed in another control mode."""
+
+    def reset(self, **kwargs):
+        self.actions: list[np.ndarray] = []
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        self.actions.append(np.asarray(action, dtype=np.float32).copy())
+        return self.env.step(action)
+
+
+def planner_function(task: str) -> Callable:
+    """ManiSkill's motion-planning solution for ``task``; a clear error where there is none."""
+    name = task_spec(task).planner
+    if name is None:
+        from mmada_rl.envs.tasks import TASKS
+
+        have = ", ".join(t for t, s in TASKS.items() if s.planner)
+        raise ValueError(f"ManiSkill ships no motion-planning solution for {task!r}; tasks with one: {have}. "
+                         "Use --policy random, or a scripted/TorchRL policy, for this task.")
+    from mani_skill.examples.motionplanning.panda import solutions
+
+    return getattr(solutions, name)
+
+
+class ActionReplayer:
+    """Replays actions from one control mode in a recording env of the configured control mode.
+
+    Actions given in the recording env's own control mode are stepped as they
+    are; ``pd_joint_pos`` actions (the planners' mode) are converted on the fly
+    with ManiSkill's own closed-loop converter
+    (``mani_skill.trajectory.utils.actions.conversion.from_pd_joint_pos``), which
+    tracks the source env's joint targets in the target controller.
+    """
+
+    def __init__(self, cfg: EnvConfig):
+        self.cfg = cfg
+        # the recorder runs past cfg's limit so over-long conversions are seen, then dropped
+        limit = 4 * (cfg.episode_steps or 200)
+        self.recorder = StepRecorder(make_gym_env(EnvConfig(**{**cfg.to_dict(), "max_episode_steps": limit})))
+        self._source_envs: dict[str, gym.Env] = {}
+
+    def source_env(self, control_mode: str) -> gym.Env:
+        """A state-only env in ``control_mode`` that the converter steps alongside."""
+        if control_mode not in self._source_envs:
+            import mani_skill.envs  # noqa: F401
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                self._source_envs[control_mode] = _ActionLog(
+                    gym.make(
+                        self.cfg.task,
+                        obs_mode="state",
+                        control_mode=control_mode,
+                        sim_backend="physx_cpu",
+                        render_backend="cpu",
+                        max_episode_steps=100_000,
+                    )
+                )
+        return self._source_envs[control_mode]
+
+    def replay(self, actions: Sequence[np.ndarray], seed: int, source_control_mode: str) -> Attempt:
+        """Reset to ``seed`` and replay ``actions``; record in the configured control mode."""
+        rec = self.recorder
+        rec.reset(seed=seed)
+        if source_control_mode == self.cfg.control_mode:
+            for action in actions:
+                rec.step(np.asarray(action, dtype=np.float32))
+                if rec.success[-1]:
+                    break
+        elif source_control_mode == PLANNER_CONTROL_MODE:
+            from mani_skill.trajectory.utils.actions.conversion import from_pd_joint_pos
+
+            src = self.source_env(source_control_mode)
+            src.reset(seed=seed)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                from_pd_joint_pos(self.cfg.control_mode, list(actions), src.unwrapped, rec)
+        else:
+            raise ValueError(
+                f"cannot convert actions from {source_control_mode!r} to {self.cfg.control_mode!r}; "
+                f"only {PLANNER_CONTROL_MODE!r} sources convert to other control modes."
+            )
+        return self._finish()
+
+    def _finish(self) -> Attempt:
+        rec = self.recorder
+        first = rec.first_success()
+        if first is None:
+            return Attempt(None, False, "no success after replay in the target control mode")
+        stop = first + 1
+        limit = self.cfg.episode_steps
+        if limit is not None and stop > limit:
+            return Attempt(None, True, f"success only after {stop} steps, beyond max_episode_steps={limit}")
+        return Attempt(rec.episode(stop), True)
+
+    def close(self) -> None:
+        self.recorder.close()
+        for env in self._source_envs.values():
+            env.close()
+
+
+class PlannerSource:
+    """Demonstrations from ManiSkill's motion-planning solutions, recorded in ``cfg.control_mode``."""
+
+    name = "planner"
+
+    def __init__(self, cfg: EnvConfig):
+        self.solve = planner_function(cfg.task)
+        self.replayer = ActionReplayer(cfg)
+
+    @property
+    def action_dim(self) -> int:
+        return int(self.replayer.recorder.action_space.shape[0])
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.replayer.recorder.observation_space["proprio"].shape[0])
+
+    def __call__(self, seed: int) -> Attempt:
+        planner_env = self.replayer.source_env(PLANNER_CONTROL_MODE)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                result = self.solve(planner_env, seed=seed)
+        except Exception as err:  # noqa: BLE001 - the planners raise on unreachable poses
+            return Attempt(None, False, f"planner error: {err}")
+        if result == -1:
+            return Attempt(None, False, "planner found no plan")
+        actions = list(planner_env.actions)
+        return self.replayer.replay(actions, seed, PLANNER_CONTROL_MODE)
+
+    def close(self) -> None:
+        self.replayer.close()
+
+
+class PolicySource:
+    """Episodes of any TorchRL policy (``None``: uniform random actions) in ``make_env(cfg)``."""
+
+    def __init__(self, cfg: EnvConfig, policy=None, name: str = "policy"):
+        from torchrl.envs.utils import RandomPolicy
+
+        from mmada_rl.envs.maniskill import make_env
+
+        self.env = make_env(cfg)
+        self.policy = policy if policy is not None else RandomPolicy(self.env.action_spec)
+        self.name = "random" if policy is None else name
+        self.max_steps = cfg.episode_steps or 200
+        self.action_dim = int(self.env.action_spec.shape[-1])
+        self.state_dim = int(self.env.observation_spec["observation", "state"].shape[-1])
+
+    def __call__(self, seed: int) -> Attempt:
+        self.env.set_seed(seed)
+        td = self.env.rollout(self.max_steps, self.policy, break_when_any_done=True)
+        success = bool(td.get(("next", "success")).any())
+        return Attempt(td, success)
+
+    def close(self) -> None:
+        self.env.close()

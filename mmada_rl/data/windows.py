@@ -1,0 +1,163 @@
+"""Chunk windows from stored episodes: state at ``t``, actions ``t..t+K-1``, goal frame ``t+K``.
+
+A window of a ``K``-step chunk covers the ``K + 1`` stored transitions
+``t .. t+K`` of one episode. :class:`ChunkWindowSampler` (a TorchRL
+``SliceSampler``) draws ``t`` uniformly over *every* step of every episode —
+also the last ``K`` steps, whose windows run past the episode end — and never
+mixes two episodes: positions past the end repeat the episode's last transition
+and are flagged invalid. :class:`ChunkWindowTransform` then turns each window
+into one training sample:
+
+* ``observation`` (image, state), ``instruction_id``, ``episode``, ``step_count`` at ``t``;
+* ``("vla_action", "chunk")`` ``[K, A]`` built by TorchRL's ``ActionChunkTransform``,
+  which repeats the last action past the episode end, and ``action_is_pad`` ``[K]``;
+* ``("goal", "image")``: the frame ``o_{t+K}``. Past the episode end it is
+  **clipped to the episode's final frame** (the observation after the last
+  action, i.e. ``("next", "observation", "image")`` of the last transition), and
+  ``("goal", "is_clipped")`` is True exactly when ``t + K`` lies beyond that
+  final frame.
+"""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import ReplayBuffer
+from torchrl.data.replay_buffers.samplers import SliceSampler
+from torchrl.envs.transforms import ActionChunkTransform, Compose, Transform
+
+from mmada_rl.keys import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    EPISODE_KEY,
+    GOAL_IMAGE_KEY,
+    GOAL_IS_CLIPPED_KEY,
+    IMAGE_KEY,
+    STEP_KEY,
+)
+
+class ChunkWindowSampler(SliceSampler):
+    """Samples ``K + 1``-step windows starting at any step of any episode.
+
+    TorchRL's ``SliceSampler`` finds the episodes (from ``traj_key``) and caches
+    them; this subclass replaces only how slices are drawn: the start ``t`` is
+    uniform over all stored steps (not only those with ``K`` steps after them),
+    and positions past the episode end repeat its last index (the transform
+    recognises them by their stalled ``step_count``). ``batch_size`` counts transitions, as for
+    ``SliceSampler``: it must be a multiple of ``chunk_size + 1``.
+
+    Args:
+        chunk_size: ``K``, the number of actions per chunk.
+        traj_key: the episode-id key. Defaults to ``"episode"``.
+        cache_values: cache episode boundaries (static buffers). Defaults to ``True``.
+    """
+
+    def __init__(self, chunk_size: int, *, traj_key=EPISODE_KEY, cache_values: bool = True):
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
+        super().__init__(
+            slice_len=chunk_size + 1,
+            traj_key=traj_key,
+            strict_length=False,
+            truncated_key=None,
+            cache_values=cache_values,
+        )
+        self.chunk_size = chunk_size
+
+    def sample(self, storage, batch_size: int):
+        window = self.chunk_size + 1
+        if batch_size % window:
+            raise ValueError(
+                f"batch_size={batch_size} transitions is not a multiple of the window length "
+                f"{window} (chunk_size + 1); ask for num_windows * {window}."
+            )
+        num_windows = batch_size // window
+        start_idx, _, lengths = self._get_stop_and_length(storage)
+        starts, lengths = start_idx[:, 0], lengths.to(torch.long)
+        ends = lengths.cumsum(0)
+        flat = torch.randint(int(ends[-1]), (num_windows,), generator=self._rng, device=lengths.device)
+        traj = torch.searchsorted(ends, flat, right=True)  # (N,)
+        t = flat - (ends[traj] - lengths[traj])  # step of the window start inside its episode
+        pos = t.unsqueeze(-1) + torch.arange(window, device=t.device)  # (N, K+1)
+        length = lengths[traj].unsqueeze(-1)
+        index = (starts[traj].unsqueeze(-1) + pos.clamp(max=length - 1)) % storage.shape[0]
+        return (index.reshape(-1),), {}
+
+
+class ChunkWindowTransform(Transform):
+    """Replay-buffer transform: flat windows ``[N * (K+1)]`` → samples ``[N]`` with chunk and goal.
+
+    Args:
+        chunk_size: ``K``.
+        with_images: also build the goal image (False for state-only buffers).
+    """
+
+    def __init__(self, chunk_size: int, *, with_images: bool = True):
+        super().__init__(in_keys=[], out_keys=[ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, GOAL_IMAGE_KEY, GOAL_IS_CLIPPED_KEY])
+        self.chunk_size = chunk_size
+        self.with_images = with_images
+        self._chunker = ActionChunkTransform(chunk_size, done_key="done")
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        K = self.chunk_size
+        windows = tensordict.reshape(-1, K + 1)  # (N, K+1)
+        chunked = self._chunker(windows.select("action", ("next", "done")).clone())
+        # a position is real when it is the next step of the same episode; past the
+        # end the sampler repeats the last transition, whose step count then stalls
+        step = windows.get(STEP_KEY).reshape(windows.shape)  # (N, K+1)
+        episode = windows.get(EPISODE_KEY)
+        offsets = torch.arange(K + 1, device=step.device)
+        valid = (step == step[:, :1] + offsets) & (episode == episode[:, :1])  # (N, K+1)
+        out = windows[:, 0].exclude("next")
+        out.set(ACTION_CHUNK_KEY, chunked.get(ACTION_CHUNK_KEY)[:, 0])  # (N, K, A)
+        out.set(ACTION_IS_PAD_KEY, ~valid[:, :K])  # (N, K)
+        if self.with_images:
+            last = windows[:, K]
+            goal = torch.where(
+                valid[:, K].view(-1, 1, 1, 1),
+                last.get(IMAGE_KEY),
+                last.get(("next", *IMAGE_KEY)),
+            )
+            out.set(GOAL_IMAGE_KEY, goal)
+        # clipped when fewer than K valid steps: t + K lies past the final frame
+        out.set(GOAL_IS_CLIPPED_KEY, valid.sum(-1) < K)
+        return out
+
+
+
+def make_window_buffer(buffer, chunk_size: int, batch_size: int, *, seed: int | None = None) -> ReplayBuffer:
+    """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
+
+    Args:
+        buffer: a :class:`~mmada_rl.data.buffer.DemoBuffer`.
+        chunk_size: ``K``; must not exceed the longest stored episode.
+        batch_size: number of windows per ``sample()``.
+        seed: seeds the sampler's generator for reproducible batches.
+
+    Examples:
+        >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)
+        >>> batch = rb.sample()
+        >>> batch["vla_action", "chunk"].shape, batch["goal", "image"].shape
+        (torch.Size([32, 5, 7]), torch.Size([32, 3, 64, 64]))
+    """
+    from mmada_rl.data.buffer import InstructionLookup
+
+    lengths = [b - a for a, b in buffer.episode_bounds()]
+    if not lengths:
+        raise ValueError(f"buffer {buffer.path} is empty.")
+    if chunk_size > max(lengths):
+        raise ValueError(
+            f"chunk_size={chunk_size} is longer than every episode in {buffer.path} "
+            f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
+        )
+    sampler = ChunkWindowSampler(chunk_size)
+    if seed is not None:
+        sampler._rng = torch.Generator().manual_seed(seed)
+    transform = Compose(
+        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
+        InstructionLookup(buffer.metadata.instructions),
+    )
+    # a plain ReplayBuffer: TensorDictReplayBuffer would write the flat per-transition
+    # sample indices back into the (already windowed) output and fail on the shape
+    return ReplayBuffer(
+        storage=buffer.storage, sampler=sampler, transform=transform, batch_size=batch_size * (chunk_size + 1)
+    )
