@@ -1,0 +1,134 @@
+"""Sub-commands ``collect``, ``info``, ``import-h5`` and ``quickstart``."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from mmada_rl.envs.maniskill import EnvConfig
+
+
+def add_env_arguments(parser: argparse.ArgumentParser, *, task_required: bool = True) -> None:
+    """The :class:`EnvConfig` fields as command-line options (shared by every env-using command)."""
+    d = EnvConfig.__dataclass_fields__
+    parser.add_argument("--task", required=task_required, default=d["task"].default, help="ManiSkill3 task id, e.g. PickCube-v1.")
+    parser.add_argument("--control-mode", default=d["control_mode"].default, help="ManiSkill controller the actions are recorded in (default: %(default)s).")
+    parser.add_argument("--obs-mode", default=d["obs_mode"].default, choices=["rgb", "state"], help="rgb: camera image + proprioception; state: privileged state vector (default: %(default)s).")
+    parser.add_argument("--image-size", type=int, default=d["image_size"].default, help="camera image side in pixels (default: %(default)s).")
+    parser.add_argument("--reward", default=d["reward"].default, choices=["dense", "sparse"], help="reward recorded with each step (default: %(default)s).")
+    parser.add_argument("--max-episode-steps", type=int, default=None, help="episode length limit (default: the task registry's).")
+
+
+def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
+    return EnvConfig(
+        task=args.task,
+        control_mode=args.control_mode,
+        obs_mode=args.obs_mode,
+        image_size=args.image_size,
+        reward=args.reward,
+        max_episode_steps=args.max_episode_steps,
+    )
+
+
+def _run_collect(args: argparse.Namespace) -> int:
+    from mmada_rl.data.collect import collect
+
+    cfg = env_config_from_args(args)
+    try:
+        result = collect(
+            args.out,
+            cfg,
+            episodes=args.episodes,
+            policy=args.policy,
+            only_success=args.only_success,
+            seed=args.seed,
+            max_attempts=args.max_attempts,
+        )
+    except KeyboardInterrupt:
+        from mmada_rl.data.buffer import DemoBuffer
+
+        buf = DemoBuffer.open(args.out)
+        print(f"\ninterrupted: {buf.metadata.num_episodes} finished episodes are kept in {args.out}; "
+              "run the same command again to resume.", file=sys.stderr)
+        return 130
+    print(result.buffer.summary())
+    print(f"this run        {result.new_episodes} new episodes from {result.attempts} attempts "
+          f"({100 * result.success_rate:.1f}% {args.policy} success), {result.steps} steps in {result.seconds:.1f} s")
+    for reason, count in sorted(result.failures.items()):
+        print(f"  not kept: {count} × {reason}")
+    if result.buffer.metadata.num_episodes < args.episodes:
+        print(f"stopped after {result.attempts} attempts with {result.buffer.metadata.num_episodes}/{args.episodes} "
+              "episodes; run again to continue, or raise --max-attempts.", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    from mmada_rl.data.buffer import DemoBuffer
+
+    print(DemoBuffer.open(args.path).summary())
+    return 0
+
+
+def _run_import(args: argparse.Namespace) -> int:
+    from mmada_rl.data.h5_import import import_h5, read_trajectory_json
+
+    task = args.task or read_trajectory_json(args.h5)["env_info"]["env_id"]
+    args.task = task
+    result = import_h5(args.h5, args.out, env_config_from_args(args), only_success=not args.keep_failures)
+    print(result.buffer.summary())
+    print(f"imported {result.imported} trajectories" + "".join(f"; skipped {n} × {r}" for r, n in result.skipped.items()))
+    return 0
+
+
+def _run_quickstart(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    out = Path(args.out) / "demos"
+    print(f"[quickstart] collecting {args.episodes} {args.task} motion-planner demonstrations into {out}")
+    collect_args = argparse.Namespace(
+        task=args.task, control_mode="pd_ee_delta_pose", obs_mode="rgb", image_size=64, reward="dense",
+        max_episode_steps=None, out=str(out), episodes=args.episodes, policy="planner", only_success=None,
+        seed=0, max_attempts=None,
+    )
+    return _run_collect(collect_args)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "collect",
+        help="record demonstrations (motion planner) or rollouts (random policy) into a buffer directory",
+        description="Record episodes into a TorchRL replay buffer on disk. Re-running the same command resumes; "
+        "an interrupted run keeps every finished episode.",
+    )
+    add_env_arguments(p)
+    p.add_argument("--episodes", type=int, required=True, help="number of episodes the buffer should hold in the end.")
+    p.add_argument("--out", required=True, help="buffer directory (created, or resumed if it already holds one).")
+    p.add_argument("--policy", default="planner", choices=["planner", "random"],
+                   help="planner: ManiSkill's motion-planning solution converted to --control-mode; random: uniform actions (default: %(default)s).")
+    p.add_argument("--only-success", default=None, action=argparse.BooleanOptionalAction,
+                   help="keep only episodes reaching the task's success (default: yes for the planner, no for random).")
+    p.add_argument("--seed", type=int, default=0, help="first env seed of a new buffer (default: %(default)s).")
+    p.add_argument("--max-attempts", type=int, default=None, help="give up after this many attempts (default: 3 × missing episodes + 10).")
+    p.set_defaults(func=_run_collect)
+
+    p = sub.add_parser("info", help="print a buffer's summary", description="Print what a buffer directory holds.")
+    p.add_argument("path", help="buffer directory")
+    p.set_defaults(func=_run_info)
+
+    p = sub.add_parser(
+        "import-h5",
+        help="import ManiSkill .h5/.json trajectories into a buffer",
+        description="Re-simulate ManiSkill RecordEpisode trajectories (.h5 + .json) from their seeds and record them in our buffer format.",
+    )
+    p.add_argument("h5", help="path of the .h5 file (its .json must sit beside it)")
+    add_env_arguments(p, task_required=False)
+    p.set_defaults(task=None)
+    p.add_argument("--out", required=True, help="buffer directory")
+    p.add_argument("--keep-failures", action="store_true", help="also import trajectories that do not succeed after replay.")
+    p.set_defaults(func=_run_import)
+
+    p = sub.add_parser("quickstart", help="the README's main job", description="Collect a small PickCube-v1 demonstration buffer and print its summary.")
+    p.add_argument("--task", default="PickCube-v1", help="task (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=10, help="demonstrations to collect (default: %(default)s)")
+    p.add_argument("--out", default="runs/quickstart", help="output directory (default: %(default)s)")
+    p.set_defaults(func=_run_quickstart)
