@@ -183,14 +183,14 @@ class DemoBuffer:
         missing = [k for k in self.transition_keys() if k not in episode.keys(True, True)]
         if missing:
             raise KeyError(f"episode lacks {missing}; it must follow the TorchRL rollout layout of make_env.")
+        if not torch.isfinite(episode.get(ACTION_KEY)).all():
+            raise ValueError("episode has non-finite actions; refusing to store it.")
         T = episode.shape[0]
         if len(self) + T > self.metadata.capacity:
             raise RuntimeError(
                 f"Buffer {self.path} is full ({len(self)}/{self.metadata.capacity} transitions, episode of {T}); "
                 "collect into a new directory with more --episodes."
             )
-        if not torch.isfinite(episode.get(ACTION_KEY)).all():
-            raise ValueError("episode has non-finite actions; refusing to store it.")
         if instruction not in self.metadata.instructions:
             self.metadata.instructions.append(instruction)
             self.replay_buffer._transform[-1].instructions = list(self.metadata.instructions)

@@ -1,0 +1,251 @@
+"""Demonstration buffers: planner collection, persistence, resume, import, chunk windows."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from mmada_rl.data import BufferMismatchError, DemoBuffer, make_window_buffer
+from mmada_rl.data.collect import collect
+from mmada_rl.data.h5_import import import_h5
+from mmada_rl.data.metadata import BufferMetadata
+from mmada_rl.envs.maniskill import EnvConfig
+from mmada_rl.envs.tasks import UnknownTaskError
+from mmada_rl.keys import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    EPISODE_KEY,
+    GOAL_IMAGE_KEY,
+    GOAL_IS_CLIPPED_KEY,
+    IMAGE_KEY,
+    INSTRUCTION_KEY,
+    STEP_KEY,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory) -> Path:
+    """Two PickCube-v1 planner demonstrations recorded in pd_ee_delta_pose, 64x64 RGB."""
+    out = tmp_path_factory.mktemp("demos") / "pickcube"
+    result = collect(out, EnvConfig(task="PickCube-v1"), episodes=2, progress=False)
+    assert result.new_episodes == 2
+    return out
+
+
+def test_planner_demos_load_back_in_the_configured_control_mode(demo_dir):
+    buf = DemoBuffer.open(demo_dir, task="PickCube-v1", control_mode="pd_ee_delta_pose", image_size=64)
+    m = buf.metadata
+    assert m.num_episodes == 2 and m.num_transitions == len(buf) > 0
+    assert m.source == "planner" and m.attempts >= 2 and m.successes >= 2
+    assert m.action_dim == 7 and len(m.action_stats["p99"]) == 7
+    assert m.seeds == [0, 1] or len(set(m.seeds)) == 2
+    assert m.versions["mani_skill"] == "3.0.1"
+    episodes = list(buf.episodes())
+    assert len(episodes) == 2
+    for ep in episodes:
+        T = ep.shape[0]
+        assert ep[IMAGE_KEY].shape == (T, 3, 64, 64) and ep[IMAGE_KEY].dtype == torch.uint8
+        assert ep["next", "success"][-1].item() and not ep["next", "success"][:-1].any()  # stops at first success
+        assert ep["next", "done"][-1].item() and not ep["next", "done"][:-1].any()
+        assert ep[STEP_KEY].squeeze(-1).tolist() == list(range(T))
+        assert ep["action"].abs().max() <= 1.0 + 1e-6  # pd_ee_delta_pose actions are normalised
+        assert set(ep["action"][:, -1].unique().tolist()) <= {-1.0, 1.0}  # binary gripper
+        assert ep[INSTRUCTION_KEY][0] == "pick up the red cube and move it to the green goal"
+        # consecutive frames chain: next observation of t is the observation of t+1
+        assert torch.equal(ep["next", *IMAGE_KEY][:-1], ep[IMAGE_KEY][1:])
+    assert "2 episodes" in buf.summary().replace("episodes      ", "") or "episodes      2" in buf.summary()
+
+
+def test_stored_demo_replays_to_success_open_loop(demo_dir):
+    """The recorded pd_ee_delta_pose actions, replayed from the same seed, solve the task again."""
+    from mmada_rl.envs.maniskill import make_gym_env
+
+    buf = DemoBuffer.open(demo_dir)
+    ep = next(buf.episodes())
+    env = make_gym_env(EnvConfig(task="PickCube-v1", obs_mode="state"))
+    try:
+        env.reset(seed=int(ep["seed"][0]))
+        success = False
+        for action in ep["action"].numpy():
+            *_, info = env.step(action)
+            success = success or bool(info["success"].any())
+        assert success
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("field, value", [("task", "PushCube-v1"), ("control_mode", "pd_joint_delta_pos"), ("image_size", 128), ("obs_mode", "state")])
+def test_mismatched_buffer_request_names_both_values(demo_dir, field, value):
+    with pytest.raises(BufferMismatchError) as err:
+        DemoBuffer.open(demo_dir, **{field: value})
+    assert repr(value) in str(err.value) and field in str(err.value)
+    assert repr(getattr(BufferMetadata.load(demo_dir), field)) in str(err.value)
+
+
+def test_not_a_buffer_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not an mmada_rl buffer"):
+        DemoBuffer.open(tmp_path)
+
+
+def _check_windows(buf, chunk_size, num):
+    rb = make_window_buffer(buf, chunk_size=chunk_size, batch_size=num, seed=0)
+    batch = rb.sample()
+    K = chunk_size
+    assert batch[ACTION_CHUNK_KEY].shape[:2] == (num, K)
+    bounds = dict(enumerate(buf.episode_bounds()))
+    storage = buf.storage
+    for i in range(num):
+        ep = int(batch[EPISODE_KEY][i])
+        start, stop = bounds[ep]
+        T = stop - start
+        t = int(batch[STEP_KEY][i])
+        ep_data = storage[start:stop]
+        for j in range(K):
+            if t + j < T:
+                assert not batch[ACTION_IS_PAD_KEY][i, j]
+                assert torch.equal(batch[ACTION_CHUNK_KEY][i, j], ep_data["action"][t + j])
+            else:  # past the end: flagged, and the last action of the same episode repeated
+                assert batch[ACTION_IS_PAD_KEY][i, j]
+                assert torch.equal(batch[ACTION_CHUNK_KEY][i, j], ep_data["action"][T - 1])
+        if GOAL_IMAGE_KEY in batch.keys(True):
+            if t + K < T:
+                expected = ep_data[IMAGE_KEY][t + K]
+            else:  # o_{t+K} clipped to the episode's final frame
+                expected = ep_data["next", *IMAGE_KEY][T - 1]
+            assert torch.equal(batch[GOAL_IMAGE_KEY][i], expected)
+            assert bool(batch[GOAL_IS_CLIPPED_KEY][i]) == (t + K > T)
+        assert torch.equal(batch[IMAGE_KEY][i], ep_data[IMAGE_KEY][t]) if IMAGE_KEY in batch.keys(True) else True
+    return batch
+
+
+def test_window_sampler_never_mixes_episodes_on_real_demos(demo_dir):
+    batch = _check_windows(DemoBuffer.open(demo_dir), chunk_size=5, num=300)
+    assert batch[ACTION_IS_PAD_KEY].any()  # windows at the episode end are sampled too
+    assert batch[INSTRUCTION_KEY][0].startswith("pick up")
+
+
+def _synthetic_buffer(path, lengths):
+    meta = BufferMetadata(task="PickCube-v1", control_mode="pd_ee_delta_pose", obs_mode="state", image_size=0, action_dim=2, state_dim=3, source="random")
+    buf = DemoBuffer.create(path, meta, capacity=sum(lengths))
+    for e, T in enumerate(lengths):
+        done = torch.zeros(T, 1, dtype=torch.bool)
+        done[-1] = True
+        ep = TensorDict(
+            {
+                "observation": {"state": torch.randn(T, 3)},
+                "action": torch.stack([torch.full((T,), float(e)), torch.arange(T, dtype=torch.float32)], -1),
+                STEP_KEY: torch.arange(T).unsqueeze(-1),
+                "next": {"observation": {"state": torch.randn(T, 3)}, "reward": torch.zeros(T, 1), "done": done,
+                         "terminated": done.clone(), "truncated": torch.zeros(T, 1, dtype=torch.bool), "success": done.clone()},
+            },
+            [T],
+        )
+        buf.add_episode(ep, seed=e, instruction="pick up the red cube and move it to the green goal")
+    return buf
+
+
+def test_window_sampler_handles_episodes_shorter_than_the_chunk(tmp_path):
+    buf = _synthetic_buffer(tmp_path / "syn", [2, 9, 1, 4])
+    batch = _check_windows(buf, chunk_size=5, num=500)
+    # every step of every episode can start a window (uniform over steps, none dropped)
+    starts = {(int(e), int(t)) for e, t in zip(batch[EPISODE_KEY], batch[STEP_KEY].squeeze(-1))}
+    assert starts == {(e, t) for e, T in enumerate([2, 9, 1, 4]) for t in range(T)}
+    # actions encode (episode, step): a chunk never holds another episode's action
+    assert (batch[ACTION_CHUNK_KEY][..., 0] == batch[EPISODE_KEY][:, None].float()).all()
+
+
+def test_chunk_longer_than_every_episode_is_refused(tmp_path):
+    buf = _synthetic_buffer(tmp_path / "syn", [3, 4])
+    with pytest.raises(ValueError, match="chunk_size=9 is longer than every episode.*longest: 4"):
+        make_window_buffer(buf, chunk_size=9, batch_size=4)
+
+
+def test_non_finite_actions_are_refused(tmp_path):
+    buf = _synthetic_buffer(tmp_path / "syn", [3])
+    ep = next(buf.episodes()).exclude(EPISODE_KEY, "instruction_id", "seed", INSTRUCTION_KEY, "index")
+    ep["action"][1, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite actions"):
+        buf.add_episode(ep, seed=9, instruction="x")
+
+
+def test_unknown_task_is_refused_before_any_work(tmp_path):
+    with pytest.raises(UnknownTaskError):
+        collect(tmp_path / "x", EnvConfig(task="PickBanana-v9"), episodes=1, progress=False)
+    assert not (tmp_path / "x").exists()
+
+
+def test_random_and_torchrl_policy_rollouts_share_the_format(tmp_path):
+    cfg = EnvConfig(task="PushCube-v1", max_episode_steps=6)
+    res = collect(tmp_path / "random", cfg, episodes=1, policy="random", progress=False)
+    ep = next(res.buffer.episodes())
+    assert ep.shape == (6,) and ep["next", "truncated"][-1].item()
+    zero = TensorDictModule(lambda state: torch.zeros(*state.shape[:-1], 7), in_keys=[("observation", "state")], out_keys=["action"])
+    res = collect(tmp_path / "policy", cfg, episodes=1, torchrl_policy=zero, progress=False)
+    ep2 = next(res.buffer.episodes())
+    assert res.buffer.metadata.source == "policy" and (ep2["action"] == 0).all()
+    assert set(ep.keys(True, True)) == set(ep2.keys(True, True))
+
+
+def test_h5_import_of_a_recording_made_here(tmp_path):
+    import gymnasium as gym
+    import mani_skill.envs  # noqa: F401
+    from mani_skill.examples.motionplanning.panda.solutions import solvePickCube
+    from mani_skill.utils.wrappers.record import RecordEpisode
+
+    env = gym.make("PickCube-v1", obs_mode="none", control_mode="pd_joint_pos", sim_backend="physx_cpu", render_backend="cpu", max_episode_steps=1000)
+    env = RecordEpisode(env, output_dir=str(tmp_path / "rec"), trajectory_name="traj", save_video=False, record_reward=False, save_on_reset=False)
+    solvePickCube(env, seed=3)
+    env.flush_trajectory()
+    env.close()
+    result = import_h5(tmp_path / "rec" / "traj.h5", tmp_path / "imported", progress=False)
+    assert result.imported == 1
+    buf = DemoBuffer.open(tmp_path / "imported", task="PickCube-v1", control_mode="pd_ee_delta_pose")
+    assert buf.metadata.source == "h5" and buf.metadata.seeds == [3]
+    ep = next(buf.episodes())
+    assert ep["next", "success"][-1].item() and ep[IMAGE_KEY].shape[1:] == (3, 64, 64)
+
+
+def _wait_for_episodes(out: Path, n: int, proc, timeout=240):
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        meta = out / "metadata.json"
+        if meta.exists() and json.loads(meta.read_text())["num_episodes"] >= n:
+            return
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else "collector exited early"
+        time.sleep(0.2)
+    raise TimeoutError(f"no {n} episodes in {out}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
+def test_interrupted_collection_is_loadable_and_resumes(tmp_path, sig):
+    out = tmp_path / "demos"
+    cmd = [sys.executable, "-m", "mmada_rl.cli", "collect", "--task", "PickCube-v1", "--episodes", "3",
+           "--out", str(out), "--obs-mode", "state"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for_episodes(out, 1, proc)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    if sig == signal.SIGINT:
+        assert proc.returncode == 130 and "run the same command again to resume" in err
+    buf = DemoBuffer.open(out)
+    kept = buf.metadata.num_episodes
+    assert 1 <= kept <= 3 and len(buf) == buf.metadata.num_transitions
+    first = next(buf.episodes())["action"].clone()
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    buf = DemoBuffer.open(out)
+    assert buf.metadata.num_episodes == 3
+    assert torch.equal(next(buf.episodes())["action"], first)  # resumed, not overwritten
+    assert len(set(buf.metadata.seeds)) == 3
