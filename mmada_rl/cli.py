@@ -23,7 +23,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _COMMANDS:
-        importlib.import_module(name).add_parser(sub)
+        try:
+            importlib.import_module(name).add_parser(sub)
+        except ImportError as err:  # a broken install must still reach `mmada-rl doctor`
+            if name == "mmada_rl.doctor":
+                raise
+            print(f"mmada-rl: commands of {name} are unavailable ({err}); run `mmada-rl doctor`.", file=sys.stderr)
     return parser
 
 

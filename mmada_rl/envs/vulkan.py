@@ -56,5 +56,5 @@ def is_render_device_error(err: BaseException) -> bool:
     text = str(err).lower()
     return any(
         needle in text
-        for needle in ("rendering device", "vulkan", "errorfeaturenotpresent", "erroriincompatibledriver")
+        for needle in ("rendering device", "vulkan", "errorfeaturenotpresent", "errorincompatibledriver")
     )

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Run the test suite: set everything up with scripts/setup.sh, then run pytest.
+#
+# Usage: scripts/test.sh [pytest arguments...]     (default: tests/)
+#   scripts/test.sh                      # the whole suite
+#   scripts/test.sh -m "not slow"        # skip the simulator/planner tests
+#   scripts/test.sh tests/test_doctor.py
+set -euo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${MMADA_RL_VENV:-$REPO/.venv}"
+[[ "$VENV" == /* ]] || VENV="$PWD/$VENV"
+
+bash "$REPO/scripts/setup.sh"
+cd "$REPO"
+if [[ $# -eq 0 ]]; then
+    set -- tests/
+fi
+exec "$VENV/bin/python" -m pytest -q "$@"

@@ -1,0 +1,40 @@
+"""Shared pytest fixtures."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+#: The repository root (holds pyproject.toml, scripts/ and tests/).
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    """The repository root."""
+    return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def run_cli() -> Callable[..., subprocess.CompletedProcess]:
+    """Run ``python -m mmada_rl.cli ARGS...`` from the repository root; returns the finished process.
+
+    Keyword arguments: ``timeout`` (seconds, default 600) and ``env`` (extra
+    environment variables). Output is captured as text.
+    """
+
+    def run(*args, timeout: float = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "mmada_rl.cli", *map(str, args)],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env={**os.environ, **(env or {})},
+        )
+
+    return run
