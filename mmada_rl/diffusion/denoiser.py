@@ -1,0 +1,258 @@
+"""The masked-diffusion denoiser ``D_θ(x̃, ρ)`` over the unified sequence.
+
+A pre-norm transformer: token + learned position + segment (modality role)
+embeddings, plus an embedding of the noise level added to every position;
+self-attention bidirectional or block-causal (per the layout); an optional
+cross-attention sublayer per block to visual features ``[B, N, d_vis]``. The
+output head covers the whole vocabulary (tied to the token embeddings by
+default) and every position's logits are set to ``-inf`` outside the id range
+the layout allows there, so targets can only emit ids of their own modality.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from mmada_rl.diffusion.keys import LOGITS_KEY, VISUAL_FEATURES_KEY
+from mmada_rl.diffusion.pretrained import load_pretrained_text_embeddings
+from mmada_rl.diffusion.transformer import NoiseLevelEmbedding, TransformerBlock
+from mmada_rl.keys import NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.tokenizers.layout import SEGMENTS, SequenceLayout
+
+__all__ = [
+    "DenoiserConfig",
+    "MaskedDiffusionDenoiser",
+    "make_denoiser_module",
+]
+
+_PRESETS = {
+    "tiny": dict(d_model=64, num_layers=2, num_heads=2),
+    "small": dict(d_model=256, num_layers=4, num_heads=4),
+    "base": dict(d_model=512, num_layers=8, num_heads=8),
+}
+
+
+@dataclass
+class DenoiserConfig:
+    """Size and options of :class:`MaskedDiffusionDenoiser`.
+
+    Attributes:
+        d_model: width of the residual stream.
+        num_layers: transformer blocks.
+        num_heads: attention heads (must divide ``d_model``).
+        mlp_ratio: MLP hidden width over ``d_model``.
+        dropout: dropout in attention and residual branches.
+        attention: ``"bidirectional"`` (the paper) or ``"block_causal"``
+            (conditioning attends only to conditioning; targets to everything).
+        cross_attention_to_visual: add a cross-attention sublayer per block over
+            visual features given to ``forward(visual=...)``.
+        visual_dim: width ``d_vis`` of those features (defaults to ``d_model``).
+        tie_embeddings: share the output head with the token embeddings.
+        pretrained_path: local HuggingFace checkpoint whose input embeddings
+            initialise the text rows (needs ``transformers``; never downloads).
+
+    Use :meth:`preset` for the ``"tiny"`` (tests), ``"small"`` (CPU benchmarks)
+    and ``"base"`` (GPU) sizes.
+    """
+
+    d_model: int = 64
+    num_layers: int = 2
+    num_heads: int = 2
+    mlp_ratio: float = 4.0
+    dropout: float = 0.0
+    attention: str = "bidirectional"
+    cross_attention_to_visual: bool = False
+    visual_dim: int | None = None
+    tie_embeddings: bool = True
+    pretrained_path: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("d_model", "num_layers", "num_heads"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+        if self.d_model % self.num_heads:
+            raise ValueError(f"d_model={self.d_model} must be divisible by num_heads={self.num_heads}.")
+        if self.mlp_ratio <= 0:
+            raise ValueError(f"mlp_ratio must be > 0, got {self.mlp_ratio!r}.")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must lie in [0, 1), got {self.dropout!r}.")
+        if self.attention not in ("bidirectional", "block_causal"):
+            raise ValueError(f"attention must be 'bidirectional' or 'block_causal', got {self.attention!r}.")
+        if self.visual_dim is not None and (not isinstance(self.visual_dim, int) or self.visual_dim < 1):
+            raise ValueError(f"visual_dim must be a positive int or None, got {self.visual_dim!r}.")
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "DenoiserConfig":
+        """``"tiny"`` (d=64, 2 layers), ``"small"`` (d=256, 4 layers), ``"base"`` (d=512, 8 layers, 8 heads)."""
+        if name not in _PRESETS:
+            raise ValueError(f"preset must be one of {sorted(_PRESETS)}, got {name!r}.")
+        unknown = set(overrides) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown DenoiserConfig fields {sorted(unknown)}.")
+        return cls(**{**_PRESETS[name], **overrides})
+
+
+class MaskedDiffusionDenoiser(nn.Module):
+    """Transformer denoiser: ``forward(ids [B, L], noise_level [B]) -> logits [B, L, V]``.
+
+    Args:
+        config: sizes and options.
+        layout: the sequence layout (fixes ``L``, the vocabulary, the segments
+            and the allowed id range of each position).
+
+    Examples:
+        >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+        >>> from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+        >>> layout = SequenceLayout(LayoutConfig(4, 4, 4, 2, 3), UnifiedVocabulary(VocabularyConfig(32, 16, 8)))
+        >>> net = MaskedDiffusionDenoiser(DenoiserConfig.preset("tiny"), layout)
+        >>> ids = torch.full((2, layout.length), layout.vocab.mask_id)
+        >>> net(ids, torch.ones(2)).shape
+        torch.Size([2, 23, 65])
+    """
+
+    def __init__(self, config: DenoiserConfig, layout: SequenceLayout) -> None:
+        super().__init__()
+        self.config = config
+        self.layout = layout
+        vocab_size, length, dim = layout.vocab.size, layout.length, config.d_model
+        self.token_embedding = nn.Embedding(vocab_size, dim)
+        self.position_embedding = nn.Parameter(torch.zeros(length, dim))
+        self.segment_embedding = nn.Embedding(len(SEGMENTS), dim)
+        self.noise_embedding = NoiseLevelEmbedding(dim)
+        self.visual_proj = None
+        if config.cross_attention_to_visual:
+            self.visual_proj = nn.Sequential(nn.Linear(config.visual_dim or dim, dim), nn.LayerNorm(dim))
+        self.blocks = nn.ModuleList(
+            TransformerBlock(dim, config.num_heads, config.mlp_ratio, config.dropout, config.cross_attention_to_visual)
+            for _ in range(config.num_layers)
+        )
+        self.final_norm = nn.LayerNorm(dim)
+        self.head = None if config.tie_embeddings else nn.Linear(dim, vocab_size, bias=False)
+        self.head_bias = nn.Parameter(torch.zeros(vocab_size))
+
+        low, high = layout.logit_bounds(restrict_condition=True)
+        self.register_buffer("segment_ids", layout.segment_ids.clone(), persistent=False)  # (L,)
+        self.register_buffer("logit_low", low, persistent=False)  # (L,)
+        self.register_buffer("logit_high", high, persistent=False)  # (L,)
+        mask = layout.attention_mask(config.attention)
+        self.register_buffer("attn_mask", mask, persistent=False)  # (L, L) or None
+        self._init_weights()
+        if config.pretrained_path is not None:
+            load_pretrained_text_embeddings(
+                self.token_embedding, layout.vocab.range_of("text"), config.pretrained_path
+            )
+
+    def _init_weights(self) -> None:
+        for module in self.modules():
+            if isinstance(module, (nn.Linear, nn.Embedding)):
+                nn.init.normal_(module.weight, std=0.02)
+                if getattr(module, "bias", None) is not None:
+                    nn.init.zeros_(module.bias)
+        nn.init.normal_(self.position_embedding, std=0.02)
+        for block in self.blocks:  # GPT-2 scaling of the residual projections
+            for layer in (block.attn.out, block.mlp[-1]) + ((block.cross.out,) if block.cross else ()):
+                nn.init.normal_(layer.weight, std=0.02 / (2 * self.config.num_layers) ** 0.5)
+
+    @property
+    def vocab_size(self) -> int:
+        return self.layout.vocab.size
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    # -- forward -------------------------------------------------------------
+    def encode(
+        self, ids: torch.Tensor, noise_level: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Final hidden states ``[B, L, D]`` of sequences ``ids [B, L]`` at noise levels ``[B]``."""
+        length = self.layout.length
+        if ids.ndim != 2 or ids.shape[1] != length:
+            raise ValueError(f"ids: expected shape [B, {length}], got {list(ids.shape)}.")
+        noise_level = torch.as_tensor(noise_level, device=ids.device)
+        if noise_level.ndim == 0:
+            noise_level = noise_level.expand(ids.shape[0])
+        if noise_level.shape != ids.shape[:1]:
+            raise ValueError(f"noise_level: expected shape [{ids.shape[0]}], got {list(noise_level.shape)}.")
+        if self.visual_proj is None and visual is not None:
+            raise ValueError("visual features given but cross_attention_to_visual=False.")
+        if self.visual_proj is not None:
+            if visual is None or visual.ndim != 3 or visual.shape[0] != ids.shape[0]:
+                got = None if visual is None else list(visual.shape)
+                raise ValueError(f"visual: expected shape [{ids.shape[0]}, N, d_vis], got {got}.")
+            visual = self.visual_proj(visual)  # (B, N, D)
+        x = self.token_embedding(ids) + self.position_embedding + self.segment_embedding(self.segment_ids)
+        x = x + self.noise_embedding(noise_level)[:, None, :]  # (B, L, D)
+        for block in self.blocks:
+            x = block(x, attn_mask=self.attn_mask, visual=visual)
+        return self.final_norm(x)  # (B, L, D)
+
+    def project(self, hidden: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """Restricted logits ``[..., V]`` of hidden states ``[..., D]`` at sequence ``positions [...]``."""
+        weight = self.token_embedding.weight if self.head is None else self.head.weight  # (V, D)
+        logits = hidden @ weight.t() + self.head_bias  # (..., V)
+        ids = torch.arange(self.vocab_size, device=hidden.device)
+        allowed = (ids >= self.logit_low[positions][..., None]) & (ids < self.logit_high[positions][..., None])
+        return logits.masked_fill(~allowed, float("-inf"))
+
+    def forward(
+        self,
+        ids: torch.Tensor,
+        noise_level: torch.Tensor,
+        visual: torch.Tensor | None = None,
+        positions: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Logits ``[*B, P, V]`` at ``positions`` (long ``[P]``; all ``L`` positions by default).
+
+        Args:
+            ids: global ids ``[*B, L]``.
+            noise_level: masking ratio per sample ``[*B]`` (or a scalar).
+            visual: visual features ``[*B, N, d_vis]`` (only with cross-attention).
+            positions: which positions to score; asking only for the targets
+                saves the head's ``L × V`` product on the conditioning.
+        """
+        batch_shape = ids.shape[:-1]
+        flat_ids = ids.reshape(-1, ids.shape[-1])
+        noise_level = torch.as_tensor(noise_level, device=ids.device)
+        if noise_level.ndim:
+            noise_level = noise_level.reshape(-1)
+        if visual is not None:
+            visual = visual.reshape(-1, *visual.shape[-2:])
+        hidden = self.encode(flat_ids, noise_level, visual)  # (B, L, D)
+        if positions is None:
+            positions = torch.arange(self.layout.length, device=ids.device)
+        logits = self.project(hidden[:, positions], positions)  # (B, P, V)
+        return logits.reshape(*batch_shape, *logits.shape[1:])
+
+
+def make_denoiser_module(
+    denoiser: MaskedDiffusionDenoiser,
+    *,
+    sequence_key=SEQUENCE_KEY,
+    noise_level_key=NOISE_LEVEL_KEY,
+    visual_key=VISUAL_FEATURES_KEY,
+    logits_key=LOGITS_KEY,
+) -> TensorDictModule:
+    """Wrap a denoiser as a ``TensorDictModule`` reading ids and noise level, writing logits.
+
+    ``in_keys = [sequence_key, noise_level_key]`` (+ ``visual_key`` with
+    cross-attention), ``out_keys = [logits_key]`` (:data:`LOGITS_KEY`).
+
+    Examples:
+        >>> from tensordict import TensorDict
+        >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+        >>> from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+        >>> layout = SequenceLayout(LayoutConfig(4, 4, 4, 2, 3), UnifiedVocabulary(VocabularyConfig(32, 16, 8)))
+        >>> module = make_denoiser_module(MaskedDiffusionDenoiser(DenoiserConfig(), layout))
+        >>> td = TensorDict({SEQUENCE_KEY: torch.ones(2, layout.length, dtype=torch.long),
+        ...                  NOISE_LEVEL_KEY: torch.ones(2)}, batch_size=[2])
+        >>> module(td)[LOGITS_KEY].shape
+        torch.Size([2, 23, 65])
+    """
+    in_keys = [sequence_key, noise_level_key]
+    if denoiser.config.cross_attention_to_visual:
+        in_keys.append(visual_key)
+    return TensorDictModule(denoiser, in_keys=in_keys, out_keys=[logits_key])

@@ -1,0 +1,85 @@
+"""Pre-norm transformer blocks of the denoiser.
+
+Self-attention (optionally masked) and an optional cross-attention sublayer
+to visual features, both through ``torch.nn.functional.scaled_dot_product_attention``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["Attention", "NoiseLevelEmbedding", "TransformerBlock"]
+
+
+class Attention(nn.Module):
+    """Multi-head attention; self-attention when ``context`` is None."""
+
+    def __init__(self, dim: int, num_heads: int, dropout: float = 0.0, context_dim: int | None = None) -> None:
+        super().__init__()
+        if dim % num_heads:
+            raise ValueError(f"d_model={dim} must be divisible by num_heads={num_heads}.")
+        self.num_heads = num_heads
+        self.dropout = dropout
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(context_dim or dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def forward(
+        self, x: torch.Tensor, context: torch.Tensor | None = None, attn_mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        batch, length, dim = x.shape  # (B, L, D)
+        context = x if context is None else context  # (B, N, D_ctx)
+        q = self.q(x).view(batch, length, self.num_heads, -1).transpose(1, 2)  # (B, H, L, Dh)
+        k, v = self.kv(context).view(batch, context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
+        y = F.scaled_dot_product_attention(
+            q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0
+        )  # (B, H, L, Dh)
+        return self.out(y.transpose(1, 2).reshape(batch, length, dim))
+
+
+class TransformerBlock(nn.Module):
+    """``x + SelfAttn(LN x)``, then ``x + CrossAttn(LN x, visual)`` (optional), then ``x + MLP(LN x)``."""
+
+    def __init__(
+        self,
+        dim: int,
+        num_heads: int,
+        mlp_ratio: float = 4.0,
+        dropout: float = 0.0,
+        cross_attention: bool = False,
+    ) -> None:
+        super().__init__()
+        self.norm_attn = nn.LayerNorm(dim)
+        self.attn = Attention(dim, num_heads, dropout)
+        self.norm_cross = nn.LayerNorm(dim) if cross_attention else None
+        self.cross = Attention(dim, num_heads, dropout) if cross_attention else None
+        self.norm_mlp = nn.LayerNorm(dim)
+        hidden = int(dim * mlp_ratio)
+        self.mlp = nn.Sequential(nn.Linear(dim, hidden), nn.GELU(), nn.Linear(hidden, dim))
+        self.drop = nn.Dropout(dropout)
+
+    def forward(
+        self, x: torch.Tensor, attn_mask: torch.Tensor | None = None, visual: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        x = x + self.drop(self.attn(self.norm_attn(x), attn_mask=attn_mask))  # (B, L, D)
+        if self.cross is not None:
+            x = x + self.drop(self.cross(self.norm_cross(x), context=visual))
+        return x + self.drop(self.mlp(self.norm_mlp(x)))
+
+
+class NoiseLevelEmbedding(nn.Module):
+    """Sinusoidal embedding of the masking ratio ``ρ ∈ [0, 1]`` through an MLP: ``[B] -> [B, D]``."""
+
+    def __init__(self, dim: int, frequencies: int = 64, max_period: float = 10_000.0) -> None:
+        super().__init__()
+        half = frequencies // 2
+        freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32) / half)
+        self.register_buffer("freqs", freqs, persistent=False)
+        self.mlp = nn.Sequential(nn.Linear(2 * half, dim), nn.SiLU(), nn.Linear(dim, dim))
+
+    def forward(self, noise_level: torch.Tensor) -> torch.Tensor:
+        angles = 1000.0 * noise_level.float()[:, None] * self.freqs[None]  # (B, F/2)
+        return self.mlp(torch.cat([angles.sin(), angles.cos()], dim=-1))  # (B, D)

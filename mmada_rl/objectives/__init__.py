@@ -1,0 +1,4 @@
+"""TorchRL losses of mmada_rl."""
+from mmada_rl.objectives.masked_diffusion import MaskedDiffusionLoss
+
+__all__ = ["MaskedDiffusionLoss"]

@@ -1,0 +1,222 @@
+"""Masked-diffusion denoising loss (the pretraining / imitation objective)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+
+from torchrl.objectives.common import LossModule
+
+from mmada_rl.diffusion.denoiser import MaskedDiffusionDenoiser, make_denoiser_module
+from mmada_rl.diffusion.forward_process import NoiseKernel, corrupt, make_kernel
+from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY, VISUAL_FEATURES_KEY
+from mmada_rl.diffusion.schedules import NoiseSchedule, make_noise_schedule
+from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.tokenizers.layout import SEGMENTS
+
+__all__ = ["MaskedDiffusionLoss"]
+
+_ACTION, _GOAL = SEGMENTS.index("action"), SEGMENTS.index("goal")
+
+
+class MaskedDiffusionLoss(LossModule):
+    """Cross-entropy of the clean tokens at the corrupted positions.
+
+    The loss owns the forward process: it reads the clean sequence, corrupts
+    it (schedule + kernel), runs the denoiser and scores only the corrupted
+    positions, so a training loop feeds it replay-buffer samples unchanged.
+    If the input already carries a corruption (``noisy_sequence``,
+    ``corrupted`` and ``noise_level`` entries, e.g. written by :meth:`corrupt`
+    once to evaluate on a fixed corruption), that one is scored instead.
+
+    Action and goal tokens are averaged separately, each over its own
+    corrupted positions, then weighted, so that the ``L_g`` image tokens do
+    not outweigh the ``K · d_tok`` action tokens unless asked to.
+
+    Args:
+        denoiser: a :class:`~mmada_rl.diffusion.MaskedDiffusionDenoiser` or the
+            ``TensorDictModule`` from :func:`~mmada_rl.diffusion.make_denoiser_module`.
+
+    Keyword Args:
+        schedule: noise schedule (name or object); the paper's ``"uniform"`` by default.
+        kernel: ``"absorbing"`` (default) or ``"uniform"``.
+        action_weight: weight of ``loss_action``.
+        goal_weight: weight of ``loss_goal`` (0 without goal tokens).
+        condition_mask_prob: also corrupt this fraction of the conditioning
+            tokens (multimodal pretraining objective), scored as ``loss_condition``.
+        condition_weight: weight of ``loss_condition``.
+
+    Returns (from ``forward``) a TensorDict with ``loss_action``, ``loss_goal``
+    (and ``loss_condition`` when ``condition_mask_prob > 0``), plus detached
+    diagnostics ``action_accuracy``, ``goal_accuracy`` (with goal tokens),
+    ``noise_level`` (mean ρ) and ``num_scored`` (scored positions).
+
+    Padded chunk steps (``action_is_pad``, ``[B, K]``) and samples flagged
+    invalid by TorchRL's loss masks (:attr:`loss_mask_key`) are not scored.
+
+    Examples:
+        >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+        >>> from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+        >>> from mmada_rl.diffusion import DenoiserConfig, MaskedDiffusionDenoiser
+        >>> layout = SequenceLayout(LayoutConfig(4, 4, 4, 2, 3), UnifiedVocabulary(VocabularyConfig(32, 16, 8)))
+        >>> loss_fn = MaskedDiffusionLoss(MaskedDiffusionDenoiser(DenoiserConfig.preset("tiny"), layout))
+        >>> clean = layout.assemble(torch.zeros(8, 4, dtype=torch.long), torch.zeros(8, 4, dtype=torch.long),
+        ...                         torch.zeros(8, 4, dtype=torch.long), torch.zeros(8, 2, 3, dtype=torch.long))
+        >>> out = loss_fn(TensorDict({SEQUENCE_KEY: clean}, batch_size=[8]))
+        >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            sequence: clean global ids ``[*B, L]``. Defaults to ``SEQUENCE_KEY``.
+            noisy_sequence: a given corruption of it ``[*B, L]`` (optional input).
+            corrupted: the positions it corrupted, bool ``[*B, L]`` (optional input).
+            noise_level: its masking ratio ``[*B]`` (optional input). Defaults to ``NOISE_LEVEL_KEY``.
+            visual: visual features ``[*B, N, d_vis]`` (read with cross-attention only).
+            action_is_pad: bool ``[*B, K]``, chunk steps past the episode end (optional).
+        """
+
+        sequence: NestedKey = SEQUENCE_KEY
+        noisy_sequence: NestedKey = NOISY_SEQUENCE_KEY
+        corrupted: NestedKey = CORRUPTED_KEY
+        noise_level: NestedKey = NOISE_LEVEL_KEY
+        visual: NestedKey = VISUAL_FEATURES_KEY
+        action_is_pad: NestedKey = ACTION_IS_PAD_KEY
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    denoiser_network: TensorDictModule
+    denoiser_network_params: TensorDictParams
+    target_denoiser_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        denoiser: MaskedDiffusionDenoiser | TensorDictModule,
+        *,
+        schedule: str | NoiseSchedule = "uniform",
+        kernel: str | NoiseKernel = "absorbing",
+        action_weight: float = 1.0,
+        goal_weight: float = 1.0,
+        condition_mask_prob: float = 0.0,
+        condition_weight: float = 1.0,
+    ) -> None:
+        for name, value in (("action_weight", action_weight), ("goal_weight", goal_weight),
+                            ("condition_weight", condition_weight)):
+            if value < 0:
+                raise ValueError(f"{name} must be >= 0, got {value!r}.")
+        if not 0.0 <= condition_mask_prob <= 1.0:
+            raise ValueError(f"condition_mask_prob must lie in [0, 1], got {condition_mask_prob!r}.")
+        super().__init__()
+        if not isinstance(denoiser, TensorDictModule):
+            denoiser = make_denoiser_module(denoiser)
+        self.layout = denoiser.module.layout
+        self.cross_attention = bool(getattr(denoiser.module.config, "cross_attention_to_visual", False))
+        self.convert_to_functional(denoiser, "denoiser_network")
+        self.schedule = make_noise_schedule(schedule)
+        self.kernel = make_kernel(kernel)
+        self.action_weight = float(action_weight)
+        self.goal_weight = float(goal_weight)
+        self.condition_mask_prob = float(condition_mask_prob)
+        self.condition_weight = float(condition_weight)
+        #: Optional RNG of the forward process (None: torch's global RNG).
+        self.generator: torch.Generator | None = None
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        keys = [self.tensor_keys.sequence]
+        if self.cross_attention:
+            keys.append(self.tensor_keys.visual)
+        return keys
+
+    @property
+    def out_keys(self) -> list[str]:
+        keys = ["loss_action", "loss_goal"]
+        if self.condition_mask_prob > 0:
+            keys.append("loss_condition")
+        keys += ["action_accuracy"] + (["goal_accuracy"] if self.layout.has_goal else [])
+        return keys + ["noise_level", "num_scored"]
+
+    # -- forward process -----------------------------------------------------
+    def corrupt(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:
+        """Write a corruption of the clean sequence into ``tensordict`` (noisy ids, mask, noise level)."""
+        clean = tensordict.get(self.tensor_keys.sequence)
+        flat = clean.reshape(-1, clean.shape[-1])
+        out = corrupt(flat, self.layout, self.schedule, self.kernel,
+                      generator if generator is not None else self.generator, self.condition_mask_prob)
+        tensordict.set(self.tensor_keys.noisy_sequence, out.noisy_ids.reshape(clean.shape))
+        tensordict.set(self.tensor_keys.corrupted, out.corrupted.reshape(clean.shape))
+        tensordict.set(self.tensor_keys.noise_level, out.noise_level.reshape(clean.shape[:-1]))
+        return tensordict
+
+    def _sample_valid(self, tensordict: TensorDictBase, batch: int, device: torch.device) -> torch.Tensor:
+        """Bool ``[B]``: samples TorchRL's loss masks (``loss_mask_key``) keep."""
+        valid = torch.ones(tensordict.batch_size, dtype=torch.bool, device=device)
+        for key in self._loss_mask_keys():
+            mask = tensordict.get(key, None)
+            if mask is not None:
+                valid = valid & self._expand_loss_mask(mask.bool().to(device), valid)
+        return valid.reshape(batch)
+
+    # -- loss ----------------------------------------------------------------
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        keys, layout = self.tensor_keys, self.layout
+        clean = tensordict.get(keys.sequence)
+        clean = clean.reshape(-1, clean.shape[-1])  # (B, L)
+        batch, device = clean.shape[0], clean.device
+        if tensordict.get(keys.noisy_sequence, None) is not None:
+            missing = [k for k in (keys.corrupted, keys.noise_level) if tensordict.get(k, None) is None]
+            if missing:
+                raise ValueError(
+                    f"the input carries {keys.noisy_sequence!r} but not {missing}: a given corruption needs "
+                    "noisy ids, corrupted mask and noise level (see MaskedDiffusionLoss.corrupt)."
+                )
+            noisy = tensordict.get(keys.noisy_sequence).reshape(batch, -1)
+            corrupted = tensordict.get(keys.corrupted).reshape(batch, -1).bool()
+            noise_level = tensordict.get(keys.noise_level).reshape(batch)
+        else:
+            noisy, corrupted, noise_level = corrupt(
+                clean, layout, self.schedule, self.kernel, self.generator, self.condition_mask_prob
+            )
+        visual = None
+        if self.cross_attention:
+            visual = tensordict.get(keys.visual)
+            visual = visual.reshape(batch, *visual.shape[-2:])
+
+        scored = corrupted & self._sample_valid(tensordict, batch, device)[:, None]  # (B, L)
+        is_pad = tensordict.get(keys.action_is_pad, None)
+        if is_pad is not None:
+            pad = is_pad.reshape(batch, -1).bool().repeat_interleave(layout.config.tokens_per_action, dim=1)
+            scored[:, layout.action_positions.to(device)] &= ~pad
+
+        with self.denoiser_network_params.to_module(self.denoiser_network):
+            net = self.denoiser_network.module
+            hidden = net.encode(noisy, noise_level, visual)  # (B, L, D)
+            rows, cols = scored.nonzero(as_tuple=True)  # (M,), (M,)
+            logits = net.project(hidden[rows, cols], cols)  # (M, V)
+        ce = F.cross_entropy(logits, clean[rows, cols], reduction="none")  # (M,)
+        correct = (logits.argmax(-1) == clean[rows, cols]).float()
+        segment = layout.segment_ids.to(device)[cols]
+
+        out = {}
+        groups = {"action": segment == _ACTION, "goal": segment == _GOAL}
+        if self.condition_mask_prob > 0:
+            groups["condition"] = (segment != _ACTION) & (segment != _GOAL)
+        weights = {"action": self.action_weight, "goal": self.goal_weight, "condition": self.condition_weight}
+        for name, select in groups.items():
+            count = select.sum().clamp_min(1)
+            out[f"loss_{name}"] = weights[name] * torch.where(select, ce, torch.zeros_like(ce)).sum() / count
+            if name != "condition" and (name != "goal" or layout.has_goal):
+                out[f"{name}_accuracy"] = (correct * select).sum().detach() / count
+        out["noise_level"] = noise_level.float().mean().detach()
+        out["num_scored"] = scored.sum().detach().float()
+        return TensorDict(out, batch_size=[])

@@ -1,0 +1,389 @@
+"""Forward process, denoiser, masked-diffusion loss and parallel sampler (tiny real models)."""
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mmada_rl.diffusion import (
+    CORRUPTED_KEY,
+    LOGITS_KEY,
+    NOISY_SEQUENCE_KEY,
+    DenoiserConfig,
+    MaskedDiffusionDenoiser,
+    MaskedDiffusionSampler,
+    SamplerConfig,
+    corrupt,
+    make_denoiser_module,
+    masked_counts,
+    path_log_prob,
+)
+from mmada_rl.diffusion.schedules import CosineNoiseSchedule, UniformNoiseSchedule
+from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.objectives import MaskedDiffusionLoss
+from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+
+K, D_TOK, TEXT, IMG = 3, 2, 4, 4
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Tiny tensors: one intra-op thread avoids thread contention on small shared machines."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_layout(goal_tokens=4, interleave=False, obs_tokens=IMG):
+    vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16))
+    return SequenceLayout(LayoutConfig(TEXT, obs_tokens, goal_tokens, K, D_TOK, interleave=interleave), vocab)
+
+
+def make_batch(layout, batch=8, seed=0):
+    """Clean sequences whose targets are a deterministic function of the conditioning."""
+    g = torch.Generator().manual_seed(seed)
+    text = torch.randint(0, 20, (batch, TEXT), generator=g)
+    obs = torch.randint(0, 32, (batch, layout.config.obs_tokens), generator=g)
+    goal = (text[:, :1] + 5 * torch.arange(layout.config.goal_tokens)) % 32 if layout.has_goal else None
+    actions = ((text[:, :K, None] + torch.arange(D_TOK)) * 3) % 16  # (B, K, d_tok)
+    return layout.assemble(text, obs if layout.config.obs_tokens else None, goal, actions)
+
+
+def tiny(layout, **overrides):
+    torch.manual_seed(0)
+    return MaskedDiffusionDenoiser(DenoiserConfig.preset("tiny", **overrides), layout)
+
+
+# -- forward process -------------------------------------------------------------
+@pytest.mark.parametrize("kernel", ["absorbing", "uniform"])
+@pytest.mark.parametrize("schedule", [UniformNoiseSchedule(), CosineNoiseSchedule()], ids=["uniform", "cosine"])
+def test_corrupt_only_targets(kernel, schedule):
+    layout = make_layout()
+    clean = make_batch(layout, batch=64)
+    out = corrupt(clean, layout, schedule, kernel, torch.Generator().manual_seed(1))
+    assert out.noisy_ids.shape == clean.shape and out.corrupted.dtype == torch.bool
+    assert not out.corrupted[:, layout.is_condition].any()
+    assert out.corrupted[:, layout.target_positions].sum(-1).min() >= 1
+    assert torch.equal(out.noisy_ids[~out.corrupted], clean[~out.corrupted])
+    low, high = schedule.support
+    assert bool(((out.noise_level >= low) & (out.noise_level <= high)).all())
+    expected = (out.noise_level * layout.num_targets).round().clamp(1, layout.num_targets)
+    assert torch.equal(out.corrupted.sum(-1).float(), expected)
+    noisy = out.noisy_ids[out.corrupted]
+    if kernel == "absorbing":
+        assert bool((noisy == layout.vocab.mask_id).all())
+    else:
+        lo, hi = layout.logit_bounds()
+        pos = out.corrupted.nonzero()[:, 1]
+        assert bool(((noisy >= lo[pos]) & (noisy < hi[pos])).all())
+        assert not bool((noisy == layout.vocab.mask_id).any())
+
+
+def test_corrupt_condition_masking_and_schedule_validation():
+    layout = make_layout()
+    clean = make_batch(layout, batch=64)
+    out = corrupt(clean, layout, condition_mask_prob=0.5, generator=torch.Generator().manual_seed(2))
+    cond = out.corrupted[:, layout.is_condition]
+    assert 0.3 < cond.float().mean() < 0.6  # separators are never masked
+    assert not out.corrupted[:, layout.is_separator].any()
+    with pytest.raises(ValueError, match="low"):
+        UniformNoiseSchedule(0.9, 0.5)
+    with pytest.raises(ValueError, match="noise kernel"):
+        corrupt(clean, layout, kernel="gaussian")
+
+
+def test_masked_counts():
+    for kind in ("cosine", "linear"):
+        for steps in (1, 4, 10, 30):
+            counts = masked_counts(10, steps, kind)
+            assert counts[-1] == 0 and len(counts) == steps
+            assert all(a >= b for a, b in zip([10] + counts, counts))
+
+
+# -- denoiser --------------------------------------------------------------------
+@pytest.mark.parametrize("attention", ["bidirectional", "block_causal"])
+def test_denoiser_shapes_and_restricted_logits(attention):
+    layout = make_layout(interleave=True)
+    net = tiny(layout, attention=attention)
+    ids = make_batch(layout, batch=2)
+    logits = net(ids, torch.tensor([0.3, 0.9]))
+    assert logits.shape == (2, layout.length, layout.vocab.size)
+    allowed = layout.allowed_logit_mask()
+    tgt = layout.target_positions
+    assert bool(torch.isneginf(logits[:, tgt][:, ~allowed[tgt]]).all())
+    assert bool(torch.isfinite(logits[:, tgt][:, allowed[tgt]]).all())
+    sub = net(ids, torch.tensor([0.3, 0.9]), positions=tgt)
+    assert torch.allclose(sub, logits[:, tgt], atol=1e-5)
+    module = make_denoiser_module(net)
+    td = module(TensorDict({SEQUENCE_KEY: ids, NOISE_LEVEL_KEY: torch.ones(2)}, batch_size=[2]))
+    assert td[LOGITS_KEY].shape == logits.shape
+
+
+def test_block_causal_conditioning_ignores_targets():
+    layout = make_layout()
+    ids = make_batch(layout, batch=2)
+    changed = ids.clone()
+    changed[:, layout.action_positions[0]] = layout.vocab.mask_id
+    cond = layout.is_condition
+    for attention, same in (("block_causal", True), ("bidirectional", False)):
+        net = tiny(layout, attention=attention).eval()
+        a, b = net(ids, torch.ones(2)), net(changed, torch.ones(2))
+        assert torch.allclose(a[:, cond], b[:, cond], atol=1e-6) is same
+
+
+def test_cross_attention_to_visual():
+    layout = make_layout(obs_tokens=0)
+    net = tiny(layout, cross_attention_to_visual=True, visual_dim=12).eval()
+    ids = make_batch(layout, batch=2)
+    visual = torch.randn(2, 5, 12)
+    out = net(ids, torch.ones(2), visual=visual)
+    assert out.shape == (2, layout.length, layout.vocab.size)
+    assert not torch.allclose(out, net(ids, torch.ones(2), visual=visual + 1))
+    with pytest.raises(ValueError, match="visual: expected shape"):
+        net(ids, torch.ones(2))
+    module = make_denoiser_module(net)
+    assert len(module.in_keys) == 3
+
+
+def test_denoiser_config_validation_and_presets():
+    with pytest.raises(ValueError, match="num_heads=3"):
+        DenoiserConfig(d_model=64, num_heads=3)
+    with pytest.raises(ValueError, match="attention"):
+        DenoiserConfig(attention="causal")
+    with pytest.raises(ValueError, match="preset"):
+        DenoiserConfig.preset("huge")
+    assert DenoiserConfig.preset("small").d_model == 256
+    assert DenoiserConfig.preset("base").num_heads == 8
+
+
+def test_pretrained_path_errors(tmp_path):
+    layout = make_layout()
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        tiny(layout, pretrained_path=str(tmp_path / "missing"))
+    try:
+        import transformers  # noqa: F401
+    except ImportError:
+        with pytest.raises(ImportError, match="transformers"):
+            tiny(layout, pretrained_path=str(tmp_path))
+
+
+# -- loss ----------------------------------------------------------------------
+def test_loss_decreases_on_fixed_batch():
+    layout = make_layout()
+    loss_fn = MaskedDiffusionLoss(tiny(layout))
+    loss_fn.generator = torch.Generator().manual_seed(0)
+    train = TensorDict({SEQUENCE_KEY: make_batch(layout, batch=16)}, batch_size=[16])
+    probe = loss_fn.corrupt(train.clone(), generator=torch.Generator().manual_seed(123))
+
+    def total(out):
+        return out["loss_action"] + out["loss_goal"]
+
+    with torch.no_grad():
+        before = total(loss_fn(probe)).item()
+    optim = torch.optim.Adam(loss_fn.parameters(), lr=3e-3)
+    for _ in range(50):
+        out = loss_fn(train)
+        optim.zero_grad()
+        total(out).backward()
+        optim.step()
+    with torch.no_grad():
+        after = loss_fn(probe)
+    assert total(after).item() < 0.7 * before, (before, total(after).item())
+    assert after["action_accuracy"] > 0.3
+
+
+def test_only_masked_positions_are_scored():
+    layout = make_layout()
+    loss_fn = MaskedDiffusionLoss(tiny(layout))
+    td = TensorDict({SEQUENCE_KEY: make_batch(layout, batch=4)}, batch_size=[4])
+    loss_fn.corrupt(td, generator=torch.Generator().manual_seed(0))
+    base = loss_fn(td)
+    corrupted = td[CORRUPTED_KEY]
+    visible = (~corrupted[0]) & layout.is_target
+    pos = visible.nonzero()[0, 0]
+    td2 = td.clone()
+    seq = td2[SEQUENCE_KEY]
+    low, high = layout.logit_bounds()
+    seq[0, pos] = low[pos] + (seq[0, pos] - low[pos] + 1) % (high[pos] - low[pos])  # another in-range token
+    out = loss_fn(td2)
+    for key in ("loss_action", "loss_goal"):
+        assert torch.equal(out[key], base[key])
+    # changing the clean token at a corrupted position does change it
+    masked = (corrupted[0] & layout.is_target).nonzero()[0, 0]
+    seq[0, masked] = low[masked] + (seq[0, masked] - low[masked] + 1) % (high[masked] - low[masked])
+    out = loss_fn(td2)
+    assert not (torch.equal(out["loss_action"], base["loss_action"]) and torch.equal(out["loss_goal"], base["loss_goal"]))
+
+
+def test_set_keys_backward_and_diagnostics():
+    layout = make_layout()
+    net = tiny(layout, attention="block_causal")
+    loss_fn = MaskedDiffusionLoss(net, schedule="cosine", goal_weight=0.5)
+    loss_fn.set_keys(sequence="tokens", noise_level="rho")
+    assert loss_fn.tensor_keys.sequence == "tokens" and loss_fn.in_keys == ["tokens"]
+    td = TensorDict({"tokens": make_batch(layout, batch=4)}, batch_size=[4])
+    out = loss_fn(td)
+    assert set(out.keys()) == set(loss_fn.out_keys)
+    assert "rho" not in td.keys()  # the input is not modified
+    (out["loss_action"] + out["loss_goal"]).backward()
+    grads = [p.grad for p in net.parameters() if p.requires_grad]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+    for key in ("action_accuracy", "goal_accuracy", "noise_level"):
+        assert not out[key].requires_grad and not key.startswith("loss_")
+    with pytest.raises(ValueError, match="not an accepted"):
+        loss_fn.set_keys(bogus="x")
+
+
+def test_loss_without_goal_with_padding_and_condition_masking():
+    layout = make_layout(goal_tokens=0)
+    loss_fn = MaskedDiffusionLoss(tiny(layout), kernel="uniform", condition_mask_prob=0.3)
+    seq = make_batch(layout, batch=4)
+    is_pad = torch.zeros(4, K, dtype=torch.bool)
+    is_pad[:, 1:] = True
+    td = TensorDict({SEQUENCE_KEY: seq, ACTION_IS_PAD_KEY: is_pad}, batch_size=[4])
+    loss_fn.corrupt(td, generator=torch.Generator().manual_seed(0))
+    out = loss_fn(td)
+    assert out["loss_goal"] == 0 and "goal_accuracy" not in out.keys()
+    assert torch.isfinite(out["loss_action"]) and torch.isfinite(out["loss_condition"])
+    # padded chunk steps are not scored: changing their clean tokens leaves the loss unchanged
+    td2 = td.clone()
+    pad_pos = layout.action_positions[D_TOK:]
+    td2[SEQUENCE_KEY][:, pad_pos] = layout.vocab.range_of("action")[0]
+    assert torch.equal(loss_fn(td2)["loss_action"], out["loss_action"])
+    assert NOISY_SEQUENCE_KEY in td.keys(True)
+
+
+def test_loss_skips_samples_outside_torchrl_loss_mask():
+    layout = make_layout()
+    loss_fn = MaskedDiffusionLoss(tiny(layout))
+    td = TensorDict({SEQUENCE_KEY: make_batch(layout, batch=6).reshape(2, 3, -1)}, batch_size=[2, 3])
+    loss_fn.corrupt(td, generator=torch.Generator().manual_seed(0))
+    valid = torch.tensor([[True, True, False], [True, False, False]])
+    td[("collector", "mask")] = valid
+    out = loss_fn(td)
+    assert out["num_scored"] == td[CORRUPTED_KEY][valid].sum()
+
+
+# -- sampler -------------------------------------------------------------------
+def prompt_of(layout, batch=3):
+    ids = make_batch(layout, batch=batch)
+    ids[:, layout.target_positions] = layout.vocab.mask_id
+    return ids
+
+
+@pytest.mark.parametrize("kernel", ["absorbing", "uniform"])
+@pytest.mark.parametrize("remasking", [False, True])
+def test_sampler_commits_every_target_in_range(kernel, remasking):
+    layout = make_layout(interleave=True)
+    net = tiny(layout).eval()
+    prompt = prompt_of(layout)
+    sampler = MaskedDiffusionSampler(SamplerConfig(num_steps=5, kernel=kernel, remasking=remasking))
+    out = sampler.sample(net, prompt, generator=torch.Generator().manual_seed(0))
+    tgt = layout.target_positions
+    assert torch.equal(out.ids[:, layout.is_condition], prompt[:, layout.is_condition])
+    low, high = layout.logit_bounds()
+    assert bool(((out.ids >= low) & (out.ids < high))[:, tgt].all())
+    assert out.action_tokens.shape == (3, K, D_TOK) and out.goal_tokens.shape == (3, 4)
+    committed = out.path.committed  # (B, N, T)
+    assert bool((committed.sum(1) >= 1).all())
+    if not remasking:  # each target committed exactly once, as many per step as the schedule says
+        assert bool((committed.sum(1) == 1).all())
+        counts = masked_counts(layout.num_targets, 5, "cosine")
+        left = layout.num_targets - committed.sum(-1).cumsum(-1)  # (B, N)
+        assert left.tolist() == [counts] * 3
+    assert bool(out.path.noise_levels[:, 0].eq(1.0).all())
+
+
+def test_greedy_is_deterministic_and_sampling_is_not():
+    layout = make_layout()
+    net = tiny(layout).eval()
+    prompt = prompt_of(layout)
+    sampler = MaskedDiffusionSampler(SamplerConfig(num_steps=4))
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        a = sampler.sample(net, prompt, generator=torch.Generator().manual_seed(0))
+        b = sampler.sample(net, prompt, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(a.ids, b.ids)
+    assert torch.equal(a.ids, sampler.sample(net, prompt, greedy=True).ids)
+    with set_exploration_type(ExplorationType.RANDOM):
+        c = sampler.sample(net, prompt, generator=torch.Generator().manual_seed(0))
+        d = sampler.sample(net, prompt, generator=torch.Generator().manual_seed(1))
+    assert not torch.equal(c.ids, d.ids)
+
+
+class StubDenoiser(nn.Module):
+    """Crafted logits: at step 0 (noise level 1) the first target is confident in token A;
+    afterwards the model prefers B there and finds A very unlikely."""
+
+    def __init__(self, layout):
+        super().__init__()
+        self.layout = layout
+        self.scale = nn.Parameter(torch.ones(()))
+        start = layout.vocab.range_of("action")[0]
+        self.token_a, self.token_b = start + 3, start + 5
+
+    def forward(self, ids, noise_level, visual=None, positions=None):
+        batch, num = ids.shape[0], positions.numel()
+        logits = torch.zeros(batch, num, self.layout.vocab.size)
+        first = 0
+        later = noise_level < 1.0  # (B,)
+        logits[:, first, self.token_a] = torch.where(later, -10.0, 10.0)
+        logits[:, first, self.token_b] = torch.where(later, 10.0, 0.0)
+        logits[:, 1:, self.token_b + 1] = torch.where(later, 8.0, 0.0)[:, None]
+        return logits * self.scale
+
+
+@pytest.mark.parametrize("remasking", [False, True])
+def test_remasking_revises_a_committed_token(remasking):
+    layout = make_layout(goal_tokens=0)
+    stub = StubDenoiser(layout)
+    prompt = prompt_of(layout, batch=2)
+    sampler = MaskedDiffusionSampler(SamplerConfig(num_steps=4, schedule="linear", remasking=remasking))
+    out = sampler.sample(stub, prompt, greedy=True)
+    first = layout.target_positions[0]
+    path = out.path
+    assert path.committed[:, 0, 0].all() and (path.tokens[:, 0, 0] == stub.token_a).all()
+    if remasking:
+        assert (out.ids[:, first] == stub.token_b).all()
+        assert (path.committed[:, :, 0].sum(-1) == 2).all()  # committed, re-masked, committed again
+        assert (path.inputs[:, 2, 0] == layout.vocab.mask_id).all()
+    else:
+        assert (out.ids[:, first] == stub.token_a).all()
+    assert torch.allclose(path_log_prob(stub, path), path.log_prob, atol=1e-5)
+
+
+@pytest.mark.parametrize("remasking", [False, True])
+@pytest.mark.parametrize("kernel", ["absorbing", "uniform"])
+def test_path_log_prob_replays_exactly(remasking, kernel):
+    layout = make_layout(interleave=True)
+    net = tiny(layout).eval()
+    prompt = prompt_of(layout, batch=4)
+    sampler = MaskedDiffusionSampler(
+        SamplerConfig(num_steps=6, remasking=remasking, kernel=kernel, temperature=0.8, confidence_temperature=2.0)
+    )
+    with set_exploration_type(ExplorationType.RANDOM):
+        out = sampler.sample(net, prompt, generator=torch.Generator().manual_seed(3))
+    path = out.path
+    replay = path_log_prob(make_denoiser_module(net), path)
+    assert replay.shape == (4,)
+    assert torch.allclose(replay, path.log_prob, atol=1e-5), (replay, path.log_prob)
+    assert torch.allclose(path_log_prob(net, path[1:3]), path.log_prob[1:3], atol=1e-5)  # paths slice like tensors
+    per_token = path_log_prob(net, path, per_token=True)
+    assert torch.allclose(per_token, path.log_probs, atol=1e-5)
+    path_log_prob(net, path).sum().backward()
+    grads = [p.grad for p in net.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+@pytest.mark.parametrize("module", ["schedules", "forward_process", "denoiser", "sampler", "objectives"])
+def test_docstring_examples_run(module):
+    import doctest
+    import importlib
+
+    name = "mmada_rl.objectives.masked_diffusion" if module == "objectives" else f"mmada_rl.diffusion.{module}"
+    result = doctest.testmod(importlib.import_module(name))
+    assert result.failed == 0 and result.attempted > 0
