@@ -1,0 +1,273 @@
+"""One object that turns observations into the unified token sequence and back.
+
+:class:`MMaDAModel` owns the frozen tokenizers (text, image, action and — when
+proprioception is on — a per-dimension bin tokenizer for the state), the
+:class:`~mmada_rl.tokenizers.vocabulary.UnifiedVocabulary`, the
+:class:`~mmada_rl.tokenizers.layout.SequenceLayout` and the trainable
+:class:`~mmada_rl.diffusion.denoiser.MaskedDiffusionDenoiser`. It does three things:
+
+* :meth:`sequence` — a training sample (instruction, image and state at ``t``,
+  goal image ``o_{t+K}``, action chunk) → clean global ids ``[B, L]``;
+* :meth:`prompt` — an observation → ids whose targets are ``[MASK]``;
+* :meth:`act` — sample the targets with the parallel decoder and decode them
+  into an action chunk (env units) and a predicted goal image.
+
+It saves to / loads from one directory (tokenizers, vocabulary, layout and
+denoiser configs, weights), so a checkpoint describes itself.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from safetensors.torch import load_file, save_file
+from tensordict import NonTensorData, NonTensorStack, TensorDictBase
+from torch import nn
+
+from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
+from mmada_rl.diffusion.path import DecodingPath
+from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
+from mmada_rl.keys import ACTION_CHUNK_KEY, GOAL_IMAGE_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+from mmada_rl.tokenizers import TextTokenizer, VQImageTokenizer, load_tokenizer
+from mmada_rl.tokenizers.action import ActionTokenizer
+from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+
+MODEL_CONFIG = "model.json"
+MODEL_WEIGHTS = "denoiser.safetensors"
+
+
+@dataclass
+class MMaDAConfig:
+    """Architecture of the policy (everything but the tokenizers' own configs).
+
+    Attributes:
+        chunk_size: actions per chunk ``K``.
+        predict_goal: generate the goal image ``o_{t+K}`` together with the chunk.
+        use_proprio: put the proprioceptive state into the sequence as tokens.
+        interleave: interleave goal and action tokens.
+        denoiser: a preset name (``tiny``, ``small``, ``base``) or a full config dict.
+        denoiser_overrides: fields overriding the preset (e.g. ``{"attention": "block_causal"}``).
+        sampler: parallel-decoding options.
+    """
+
+    chunk_size: int = 5
+    predict_goal: bool = True
+    use_proprio: bool = True
+    interleave: bool = False
+    denoiser: str | dict = "small"
+    denoiser_overrides: dict = field(default_factory=dict)
+    sampler: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.chunk_size, int) or self.chunk_size < 1:
+            raise ValueError(f"chunk_size must be a positive int, got {self.chunk_size!r}.")
+        self.denoiser_config()  # validates
+        self.sampler_config()
+
+    def denoiser_config(self) -> DenoiserConfig:
+        if isinstance(self.denoiser, str):
+            return DenoiserConfig.preset(self.denoiser, **self.denoiser_overrides)
+        return DenoiserConfig(**{**self.denoiser, **self.denoiser_overrides})
+
+    def sampler_config(self) -> SamplerConfig:
+        return SamplerConfig(**self.sampler)
+
+
+class Tokenizers(NamedTuple):
+    """The frozen tokenizers of a policy."""
+
+    text: TextTokenizer
+    image: VQImageTokenizer
+    action: ActionTokenizer
+    proprio: ActionTokenizer | None = None
+
+
+class PolicyOutput(NamedTuple):
+    """What :meth:`MMaDAModel.act` returns."""
+
+    chunk: torch.Tensor  # (B, K, A) env units
+    action_tokens: torch.Tensor  # (B, K, d_tok) local codes
+    goal_tokens: torch.Tensor | None  # (B, g, g) local codes
+    goal_image: torch.Tensor | None  # (B, 3, H, W) uint8
+    path: DecodingPath
+    log_prob: torch.Tensor  # (B,) log-probability of the decoding path
+
+
+def instructions_of(td: TensorDictBase) -> list[str]:
+    """The instruction texts of a tensordict, one per batch element."""
+    value = td.get(INSTRUCTION_KEY)
+    if isinstance(value, NonTensorStack):
+        texts = value.tolist()
+    elif isinstance(value, NonTensorData):
+        texts = value.data
+    else:
+        texts = value
+    texts = [texts] if isinstance(texts, str) else list(texts)
+    n = td.batch_size.numel() if td.batch_size else 1
+    if len(texts) == 1 and n > 1:
+        texts = texts * n
+    return texts
+
+
+class MMaDAModel(nn.Module):
+    """Tokenizers, vocabulary, layout and denoiser of the MMaDA-VLA policy.
+
+    Args:
+        config: architecture options.
+        tokenizers: fitted tokenizers (kept frozen).
+        state_dim: size of the proprioceptive state (needed when ``use_proprio``).
+
+    Examples:
+        >>> model = MMaDAModel(MMaDAConfig(chunk_size=5, denoiser="tiny"), tokenizers)
+        >>> ids = model.sequence(batch)            # (B, L) clean training sequence
+        >>> out = model.act(observation_td)        # PolicyOutput(chunk=(B, 5, 7), ...)
+    """
+
+    def __init__(self, config: MMaDAConfig, tokenizers: Tokenizers):
+        super().__init__()
+        self.config = config
+        if config.use_proprio and tokenizers.proprio is None:
+            raise ValueError("use_proprio=True needs a proprio tokenizer (Tokenizers.proprio).")
+        self.text_tokenizer = tokenizers.text
+        self.image_tokenizer = tokenizers.image
+        self.action_tokenizer = tokenizers.action
+        self.proprio_tokenizer = tokenizers.proprio if config.use_proprio else None
+        for tok in self.tokenizers():
+            tok.requires_grad_(False).eval()
+        grid = self.image_tokenizer.config.grid_size
+        self.vocab = UnifiedVocabulary(
+            VocabularyConfig(
+                text_vocab_size=self.text_tokenizer.vocab_size,
+                image_codebook_size=self.image_tokenizer.vocab_size,
+                action_codebook_size=self.action_tokenizer.vocab_size,
+                proprio_codebook_size=self.proprio_tokenizer.vocab_size if self.proprio_tokenizer else 0,
+            )
+        )
+        self.layout = SequenceLayout(
+            LayoutConfig(
+                text_tokens=self.text_tokenizer.max_len,
+                obs_tokens=self.image_tokenizer.tokens_per_image,
+                goal_tokens=self.image_tokenizer.tokens_per_image if config.predict_goal else 0,
+                chunk_size=config.chunk_size,
+                tokens_per_action=self.action_tokenizer.tokens_per_action,
+                proprio_tokens=self.proprio_tokenizer.tokens_per_action if self.proprio_tokenizer else 0,
+                interleave=config.interleave,
+                image_grid=(grid, grid),
+            ),
+            self.vocab,
+        )
+        self.denoiser = MaskedDiffusionDenoiser(config.denoiser_config(), self.layout)
+        self.sampler = MaskedDiffusionSampler(config.sampler_config())
+
+    def tokenizers(self) -> list[nn.Module]:
+        return [t for t in (self.text_tokenizer, self.image_tokenizer, self.action_tokenizer, self.proprio_tokenizer) if t is not None]
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for tok in self.tokenizers():  # frozen: batch statistics and EMA codebooks never move
+            tok.eval()
+        return self
+
+    @property
+    def image_size(self) -> int:
+        return self.image_tokenizer.config.image_size
+
+    # -- sequence construction ------------------------------------------------
+    @torch.no_grad()
+    def _condition(self, td: TensorDictBase) -> dict[str, torch.Tensor]:
+        batch = td.batch_size
+        image = td.get(IMAGE_KEY)
+        if image.shape[-1] != self.image_size or image.shape[-2] != self.image_size:
+            raise ValueError(
+                f"observation images are {tuple(image.shape[-2:])} but the image tokenizer was fitted on "
+                f"{self.image_size}x{self.image_size}; use env image_size={self.image_size}."
+            )
+        text = self.text_tokenizer.encode(instructions_of(td)).ids.to(image.device)  # (B, L_t)
+        out = {
+            "text_ids": text.reshape(-1, text.shape[-1]),
+            "obs_ids": self.image_tokenizer.encode(image).reshape(-1, self.layout.config.obs_tokens),
+        }
+        if self.proprio_tokenizer is not None:
+            state = td.get(STATE_KEY)
+            out["proprio_ids"] = self.proprio_tokenizer.encode(state).reshape(-1, self.layout.config.proprio_tokens)
+        if batch and out["text_ids"].shape[0] != batch.numel():
+            raise ValueError(f"{out['text_ids'].shape[0]} instructions for a batch of {tuple(batch)}.")
+        return out
+
+    @torch.no_grad()
+    def sequence(self, td: TensorDictBase) -> torch.Tensor:
+        """Clean global ids ``[B, L]`` of training windows (needs the chunk and, if predicted, the goal image)."""
+        cond = self._condition(td)
+        chunk = td.get(ACTION_CHUNK_KEY)  # (B, K, A)
+        if chunk.shape[-2] != self.config.chunk_size:
+            raise ValueError(f"action chunks hold {chunk.shape[-2]} actions but the model's chunk_size is {self.config.chunk_size}.")
+        actions = self.action_tokenizer.encode(chunk)  # (B, K, d_tok)
+        goal = self.image_tokenizer.encode(td.get(GOAL_IMAGE_KEY)) if self.config.predict_goal else None
+        return self.layout.assemble(goal_ids=goal, action_ids=actions, **cond)
+
+    @torch.no_grad()
+    def prompt(self, td: TensorDictBase) -> torch.Tensor:
+        """Ids ``[B, L]`` of an observation with every target position masked."""
+        return self.layout.assemble(**self._condition(td))
+
+    @torch.no_grad()
+    def act(self, td: TensorDictBase, *, greedy: bool | None = None, generator: torch.Generator | None = None,
+            decode_goal: bool = True) -> PolicyOutput:
+        """Sample a chunk (and goal image) for a batch of observations ``td`` (batch ``[B]``)."""
+        was_training = self.denoiser.training
+        self.denoiser.eval()
+        try:
+            result = self.sampler.sample(self.denoiser, self.prompt(td), greedy=greedy, generator=generator)
+        finally:
+            self.denoiser.train(was_training)
+        chunk = self.action_tokenizer.decode(result.action_tokens)  # (B, K, A)
+        goal_image = None
+        if result.goal_tokens is not None and decode_goal:
+            grid = self.image_tokenizer.config.grid_size
+            goal_image = self.image_tokenizer.decode(result.goal_tokens.reshape(-1, grid, grid))
+        return PolicyOutput(chunk, result.action_tokens, result.goal_tokens, goal_image, result.path, result.path.log_prob)
+
+    # -- persistence -------------------------------------------------------
+    def save(self, directory: str | Path) -> Path:
+        """Write the whole policy into ``directory``: tokenizers, configs, denoiser weights."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        names = {"text": self.text_tokenizer, "image": self.image_tokenizer, "action": self.action_tokenizer, "proprio": self.proprio_tokenizer}
+        for name, tok in names.items():
+            if tok is not None:
+                tok.save(directory / f"tokenizer_{name}")
+        payload = {
+            "config": asdict(self.config),
+            "vocabulary": self.vocab.to_dict(),
+            "layout": self.layout.to_dict(),
+            "num_parameters": sum(p.numel() for p in self.denoiser.parameters()),
+        }
+        tmp = directory / f".{MODEL_CONFIG}.tmp"
+        tmp.write_text(json.dumps(payload, indent=2))
+        tmp.replace(directory / MODEL_CONFIG)
+        tmp = directory / f".{MODEL_WEIGHTS}.tmp"
+        save_file({k: v.contiguous() for k, v in self.denoiser.state_dict().items()}, str(tmp))
+        tmp.replace(directory / MODEL_WEIGHTS)
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path, *, device: str | torch.device = "cpu") -> MMaDAModel:
+        directory = Path(directory)
+        if not (directory / MODEL_CONFIG).exists():
+            raise FileNotFoundError(f"{directory} holds no MMaDA policy ({MODEL_CONFIG} missing).")
+        payload = json.loads((directory / MODEL_CONFIG).read_text())
+        config = MMaDAConfig(**payload["config"])
+        proprio = directory / "tokenizer_proprio"
+        tokenizers = Tokenizers(
+            text=load_tokenizer(directory / "tokenizer_text"),
+            image=load_tokenizer(directory / "tokenizer_image"),
+            action=load_tokenizer(directory / "tokenizer_action"),
+            proprio=load_tokenizer(proprio) if proprio.exists() else None,
+        )
+        model = cls(config, tokenizers)
+        model.denoiser.load_state_dict(load_file(str(directory / MODEL_WEIGHTS)))
+        return model.to(device)
