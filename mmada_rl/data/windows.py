@@ -150,8 +150,6 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int, *, seed: int | 
             f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
         )
     sampler = ChunkWindowSampler(chunk_size)
-    if seed is not None:
-        sampler._rng = torch.Generator().manual_seed(seed)
     transform = Compose(
         ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
         InstructionLookup(buffer.metadata.instructions),
@@ -159,5 +157,9 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int, *, seed: int | 
     # a plain ReplayBuffer: TensorDictReplayBuffer would write the flat per-transition
     # sample indices back into the (already windowed) output and fail on the shape
     return ReplayBuffer(
-        storage=buffer.storage, sampler=sampler, transform=transform, batch_size=batch_size * (chunk_size + 1)
+        storage=buffer.storage,
+        sampler=sampler,
+        transform=transform,
+        batch_size=batch_size * (chunk_size + 1),
+        generator=torch.Generator().manual_seed(seed) if seed is not None else None,
     )

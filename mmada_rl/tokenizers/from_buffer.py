@@ -1,0 +1,139 @@
+"""Fit every tokenizer a policy needs on one demonstration buffer.
+
+Used by ``mmada-rl fit-tokenizers`` and by the pretraining recipe (which fits
+them first when no fitted tokenizers are given).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from mmada_rl.keys import ACTION_KEY, IMAGE_KEY, STATE_KEY
+from mmada_rl.tokenizers.action_bins import UniformBinActionTokenizer, UniformBinActionTokenizerConfig
+from mmada_rl.tokenizers.action_fsq import FSQActionTokenizer, FSQActionTokenizerConfig
+from mmada_rl.tokenizers.action_vq import VQActionTokenizer, VQActionTokenizerConfig
+from mmada_rl.tokenizers.fit import FitResult, fit_action_tokenizer, fit_image_tokenizer
+from mmada_rl.tokenizers.image import VQImageTokenizer, VQImageTokenizerConfig
+from mmada_rl.tokenizers.io import load_tokenizer
+from mmada_rl.tokenizers.text import TextTokenizer, TextTokenizerConfig
+
+#: action tokenizer kinds: the paper's EMA codebook and the two baselines
+ACTION_TOKENIZERS = {
+    "vq": (VQActionTokenizer, VQActionTokenizerConfig),
+    "bins": (UniformBinActionTokenizer, UniformBinActionTokenizerConfig),
+    "fsq": (FSQActionTokenizer, FSQActionTokenizerConfig),
+}
+
+
+@dataclass
+class TokenizerFitConfig:
+    """What to fit and how long.
+
+    Attributes:
+        action_type: ``"vq"`` (residual EMA codebook), ``"bins"`` (256 uniform bins) or ``"fsq"``.
+        action: fields of that tokenizer's config (``action_dim`` is taken from the buffer).
+        action_steps: optimisation steps of the action tokenizer (ignored for bins).
+        image: fields of :class:`VQImageTokenizerConfig` (``image_size`` from the buffer).
+        image_steps, image_batch_size: VQ-VAE training length.
+        text_max_len: instruction length in tokens.
+        proprio_bins: bins per state dimension for proprioception tokens (0: none).
+        seed: seeds every fit.
+    """
+
+    action_type: str = "vq"
+    action: dict = field(default_factory=dict)
+    action_steps: int = 2000
+    image: dict = field(default_factory=dict)
+    image_steps: int = 2000
+    image_batch_size: int = 32
+    text_max_len: int = 16
+    proprio_bins: int = 256
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.action_type not in ACTION_TOKENIZERS:
+            raise ValueError(f"action_type must be one of {sorted(ACTION_TOKENIZERS)}, got {self.action_type!r}.")
+        if self.proprio_bins == 1 or self.proprio_bins < 0:
+            raise ValueError(f"proprio_bins must be 0 (no proprio tokens) or >= 2, got {self.proprio_bins}.")
+
+
+@dataclass
+class FittedTokenizers:
+    """Tokenizers fitted on a buffer, with their training results."""
+
+    text: TextTokenizer
+    image: VQImageTokenizer
+    action: torch.nn.Module
+    proprio: UniformBinActionTokenizer | None
+    fits: dict[str, FitResult] = field(default_factory=dict)
+
+    def save(self, directory: str | Path) -> Path:
+        directory = Path(directory)
+        for name in ("text", "image", "action", "proprio"):
+            tok = getattr(self, name)
+            if tok is not None:
+                tok.save(directory / name)
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> FittedTokenizers:
+        directory = Path(directory)
+        missing = [n for n in ("text", "image", "action") if not (directory / n).exists()]
+        if missing:
+            raise FileNotFoundError(f"{directory} holds no fitted tokenizers ({', '.join(missing)} missing); "
+                                    "run `mmada-rl fit-tokenizers --data DIR --out DIR`.")
+        proprio = directory / "proprio"
+        return cls(
+            text=load_tokenizer(directory / "text"),
+            image=load_tokenizer(directory / "image"),
+            action=load_tokenizer(directory / "action"),
+            proprio=load_tokenizer(proprio) if proprio.exists() else None,
+        )
+
+
+def make_action_tokenizer(kind: str, action_dim: int, **fields) -> torch.nn.Module:
+    """An unfitted action tokenizer of ``kind`` for ``action_dim``-dimensional actions."""
+    if kind not in ACTION_TOKENIZERS:
+        raise ValueError(f"action tokenizer must be one of {sorted(ACTION_TOKENIZERS)}, got {kind!r}.")
+    cls, config_cls = ACTION_TOKENIZERS[kind]
+    return cls(config_cls(action_dim=action_dim, **fields))
+
+
+def buffer_arrays(buffer) -> dict[str, torch.Tensor]:
+    """Actions, states and images of every stored transition (images only for RGB buffers)."""
+    data = buffer.storage[: len(buffer)]
+    out = {"action": data.get(ACTION_KEY).clone(), "state": data.get(STATE_KEY).clone()}
+    if buffer.metadata.obs_mode == "rgb":
+        out["image"] = data.get(IMAGE_KEY).clone()
+    return out
+
+
+def fit_tokenizers(buffer, cfg: TokenizerFitConfig | None = None, *, progress: bool = True) -> FittedTokenizers:
+    """Fit text, image, action (and proprio) tokenizers on ``buffer``'s transitions."""
+    cfg = cfg or TokenizerFitConfig()
+    meta = buffer.metadata
+    if meta.obs_mode != "rgb":
+        raise ValueError(f"buffer {buffer.path} has no images (obs_mode={meta.obs_mode!r}); the policy needs an RGB buffer.")
+    arrays = buffer_arrays(buffer)
+    text = TextTokenizer(TextTokenizerConfig(max_len=cfg.text_max_len)).fit(meta.instructions)
+    image = VQImageTokenizer(VQImageTokenizerConfig(**{"image_size": meta.image_size, **cfg.image}))
+    fits = {"image": fit_image_tokenizer(image, arrays["image"], steps=cfg.image_steps, batch_size=cfg.image_batch_size,
+                                         seed=cfg.seed, progress=progress)}
+    action = make_action_tokenizer(cfg.action_type, meta.action_dim, **cfg.action)
+    fits["action"] = fit_action_tokenizer(action, arrays["action"], steps=cfg.action_steps, seed=cfg.seed, progress=progress)
+    proprio = None
+    if cfg.proprio_bins:
+        # the state is quantised per dimension over its full data range (nothing seen in training is clipped)
+        proprio = UniformBinActionTokenizer(
+            UniformBinActionTokenizerConfig(action_dim=meta.state_dim, gripper_dims=(), num_bins=cfg.proprio_bins,
+                                            low_quantile=0.0, high_quantile=1.0)
+        )
+        fit_action_tokenizer(proprio, arrays["state"], progress=False)
+    return FittedTokenizers(text, image, action, proprio, fits)
+
+
+def config_dict(cfg: TokenizerFitConfig) -> dict:
+    return asdict(cfg)
+

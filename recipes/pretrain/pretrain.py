@@ -1,0 +1,123 @@
+"""Masked-diffusion pretraining of the MMaDA-VLA policy on demonstrations.
+
+    python recipes/pretrain/pretrain.py                          # toy: real PickCube-v1, about a minute
+    python recipes/pretrain/pretrain.py --config-name maniskill  # 100 demos, small model
+    python recipes/pretrain/pretrain.py checkpoint.resume=true   # continue the run in run_dir
+
+Reads a demonstration buffer (collecting it first if missing), fits the
+tokenizers (or loads ``tokenizers.dir``), trains the denoiser on chunk windows
+with the masked-diffusion loss, evaluates in ManiSkill every ``eval.interval``
+steps and at the end, and checkpoints atomically every ``checkpoint.interval`` steps.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from mmada_rl.training import latest_checkpoint, load_checkpoint, save_checkpoint
+from mmada_rl.training.checkpoint import restore_rng_state
+from utils import (
+    loss_inputs,
+    make_data,
+    make_demo_buffer,
+    make_logger,
+    make_loss,
+    make_model,
+    make_optim,
+    make_tokenizers,
+    total_loss,
+)
+
+
+def evaluate(cfg: DictConfig, model, step: int) -> dict:
+    from mmada_rl.evaluation import evaluate as run_eval
+
+    result = run_eval(model, cfg.env.task, episodes=int(cfg.eval.episodes), image_size=int(cfg.env.image_size),
+                      control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
+                      execute_steps=int(cfg.eval.execute_steps), progress=False)
+    return result.to_dict()
+
+
+@hydra.main(config_path="config", config_name="toy", version_base=None)
+def main(cfg: DictConfig) -> None:
+    if cfg.num_threads:
+        torch.set_num_threads(int(cfg.num_threads))
+    torch.manual_seed(int(cfg.seed))
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config = OmegaConf.to_container(cfg, resolve=True)
+
+    buffer = make_demo_buffer(cfg)
+    tokenizers = make_tokenizers(cfg, buffer, run_dir)
+    model = make_model(cfg, tokenizers)
+    data = make_data(cfg, buffer)
+    loss_module = make_loss(cfg, model)
+    optimizer, scheduler = make_optim(cfg, model)
+    logger = make_logger(cfg, run_dir)
+    generators = {"sampler": data._rng}  # the window sampler's generator
+
+    start = 0
+    if cfg.checkpoint.resume:
+        path = latest_checkpoint(run_dir) if cfg.checkpoint.resume is True else Path(cfg.checkpoint.resume)
+        if path is None:
+            raise FileNotFoundError(f"checkpoint.resume=true but {run_dir}/checkpoints holds no checkpoint.")
+        ckpt = load_checkpoint(path)
+        model.denoiser.load_state_dict(type(model).load(ckpt.model_dir).denoiser.state_dict())
+        optimizer.load_state_dict(ckpt.trainer_state["optimizer"])
+        scheduler.load_state_dict(ckpt.trainer_state["scheduler"])
+        restore_rng_state(ckpt.trainer_state["rng"], generators)
+        start = ckpt.step
+        print(f"[pretrain] resumed from {ckpt.path} at step {start}")
+    params = sum(p.numel() for p in model.denoiser.parameters())
+    print(f"[pretrain] {buffer.metadata.num_episodes} demos, {len(buffer)} transitions; denoiser "
+          f"{params / 1e6:.2f}M parameters; sequence length {model.layout.length}; vocabulary {model.vocab.size}")
+
+    total, history = int(cfg.optim.total_steps), []
+    model.train()
+    pbar = tqdm(range(start, total), initial=start, total=total, desc="pretrain")
+    for step in pbar:
+        t0 = time.perf_counter()
+        batch = data.sample()
+        losses = loss_module(loss_inputs(model, batch))
+        loss = total_loss(losses)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.denoiser.parameters(), float(cfg.optim.grad_clip))
+        optimizer.step()
+        scheduler.step()
+        done = step + 1
+        metrics = {f"train/{k}": float(v.detach()) for k, v in losses.items()}
+        metrics.update({"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm),
+                        "train/lr": scheduler.get_last_lr()[0], "time/step_s": time.perf_counter() - t0})
+        if cfg.eval.interval and int(cfg.eval.episodes) > 0 and done % int(cfg.eval.interval) == 0 and done < total:
+            metrics.update(evaluate(cfg, model, done))
+            model.train()
+        if done % int(cfg.logger.log_interval) == 0 or done == total or "eval/success_once" in metrics:
+            for key, value in metrics.items():
+                logger.log_scalar(key, value, step=done)
+            history.append({"step": done, **metrics})
+        pbar.set_postfix(loss=f"{float(loss.detach()):.3f}", acc=f"{float(losses['action_accuracy']):.2f}")
+        if done % int(cfg.checkpoint.interval) == 0 or done == total:
+            save_checkpoint(run_dir, done, model=model, optimizer=optimizer, scheduler=scheduler, config=config,
+                            generators=generators, keep=int(cfg.checkpoint.keep))
+    pbar.close()
+
+    final = {"step": total}
+    if total > start and int(cfg.eval.episodes) > 0:
+        final.update(evaluate(cfg, model, total))
+        for key, value in final.items():
+            if key.startswith("eval/"):
+                logger.log_scalar(key, value, step=total)
+    (run_dir / "history.json").write_text(json.dumps(history, indent=2))
+    (run_dir / "final.json").write_text(json.dumps(final, indent=2))
+    print("[pretrain] done:", json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in final.items()}))
+
+
+if __name__ == "__main__":
+    main()

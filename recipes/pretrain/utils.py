@@ -1,0 +1,105 @@
+"""Factories of the pretraining recipe: each ``make_*`` turns one config section into objects."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict
+
+from mmada_rl.data import DemoBuffer, make_window_buffer
+from mmada_rl.data.collect import collect
+from mmada_rl.diffusion import UniformNoiseSchedule
+from mmada_rl.envs.maniskill import EnvConfig
+from mmada_rl.keys import ACTION_IS_PAD_KEY, SEQUENCE_KEY
+from mmada_rl.objectives import MaskedDiffusionLoss
+from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
+from mmada_rl.tokenizers.from_buffer import FittedTokenizers, TokenizerFitConfig, fit_tokenizers
+from mmada_rl.training import make_optimizer, make_scheduler
+
+
+def make_env_config(cfg: DictConfig) -> EnvConfig:
+    return EnvConfig(**OmegaConf.to_container(cfg.env))
+
+
+def make_demo_buffer(cfg: DictConfig) -> DemoBuffer:
+    """The demonstration buffer of ``cfg.data.dir``; collected first when missing or short."""
+    env_cfg = make_env_config(cfg)
+    path = Path(cfg.data.dir)
+    want = int(cfg.data.collect_episodes)
+    have = DemoBuffer.open(path).metadata.num_episodes if (path / "metadata.json").exists() else 0
+    if want and have < want:
+        print(f"[pretrain] collecting {want - have} planner demonstrations into {path}")
+        collect(path, env_cfg, episodes=want)
+    return DemoBuffer.open(path, task=env_cfg.task, control_mode=env_cfg.control_mode, obs_mode="rgb",
+                           image_size=env_cfg.image_size)
+
+
+def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Tokenizers:
+    """Load fitted tokenizers (``tokenizers.dir``) or fit them on the buffer into ``run_dir/tokenizers``."""
+    tcfg = OmegaConf.to_container(cfg.tokenizers)
+    directory = tcfg.pop("dir")
+    if directory is None:
+        directory = run_dir / "tokenizers"
+        if not (directory / "action").exists():
+            fit = TokenizerFitConfig(**{**tcfg, "seed": int(cfg.seed)})
+            fit.action["hidden_sizes"] = tuple(fit.action.get("hidden_sizes", (256, 256)))
+            fitted = fit_tokenizers(buffer, fit)
+            fitted.save(directory)
+    fitted = FittedTokenizers.load(directory)
+    if fitted.image.config.image_size != buffer.metadata.image_size:
+        raise ValueError(f"the image tokenizer in {directory} was fitted on {fitted.image.config.image_size}px images "
+                         f"but the buffer holds {buffer.metadata.image_size}px ones; refit or use matching env.image_size.")
+    return Tokenizers(fitted.text, fitted.image, fitted.action, fitted.proprio)
+
+
+def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
+    m = cfg.model
+    config = MMaDAConfig(
+        chunk_size=int(m.chunk_size),
+        predict_goal=bool(m.predict_goal),
+        use_proprio=bool(m.use_proprio),
+        interleave=bool(m.interleave),
+        denoiser=m.denoiser if isinstance(m.denoiser, str) else OmegaConf.to_container(m.denoiser),
+        denoiser_overrides=OmegaConf.to_container(m.denoiser_overrides),
+        sampler={"num_steps": int(m.num_denoise_steps), "schedule": m.sampler_schedule, "kernel": cfg.loss.kernel},
+    )
+    return MMaDAModel(config, tokenizers).to(cfg.device)
+
+
+def make_data(cfg: DictConfig, buffer: DemoBuffer):
+    """Chunk-window sampler over the demonstrations (seeded, so resumption replays the same batches)."""
+    return make_window_buffer(buffer, int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), seed=int(cfg.seed))
+
+
+def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
+    l = cfg.loss
+    schedule = UniformNoiseSchedule(float(l.schedule_low), float(l.schedule_high)) if l.schedule == "uniform" else l.schedule
+    return MaskedDiffusionLoss(
+        model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
+        goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
+    )
+
+
+def make_optim(cfg: DictConfig, model: MMaDAModel):
+    o = cfg.optim
+    optimizer = make_optimizer(model.denoiser.parameters(), lr=float(o.lr), weight_decay=float(o.weight_decay))
+    scheduler = make_scheduler(optimizer, warmup_steps=int(o.warmup_steps), total_steps=int(o.total_steps))
+    return optimizer, scheduler
+
+
+def make_logger(cfg: DictConfig, run_dir: Path):
+    """A TorchRL logger writing under ``run_dir/logs``."""
+    from torchrl.record.loggers import get_logger
+
+    return get_logger(cfg.logger.backend, logger_name=str(run_dir), experiment_name="logs")
+
+
+def loss_inputs(model: MMaDAModel, batch: TensorDict) -> TensorDict:
+    """The clean sequence (and the chunk padding) of a batch of windows, as the loss reads them."""
+    ids = model.sequence(batch)
+    return TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: batch.get(ACTION_IS_PAD_KEY)}, batch_size=[ids.shape[0]], device=ids.device)
+
+
+def total_loss(losses: TensorDict) -> torch.Tensor:
+    return sum(v for k, v in losses.items() if k.startswith("loss_"))
