@@ -13,6 +13,8 @@ import sys
 _COMMANDS = (
     "mmada_rl.doctor",
     "mmada_rl.data.cli",
+    "mmada_rl.tokenizers.cli",
+    "mmada_rl.evaluation",
 )
 
 
