@@ -113,7 +113,7 @@ def add_parser(sub) -> None:
     p.add_argument("--image-grid", type=int, default=8, help="image token grid side: grid^2 tokens per image (default: %(default)s)")
     p.add_argument("--image-steps", type=int, default=3000, help="image VQ-VAE training steps (default: %(default)s)")
     p.add_argument("--proprio-bins", type=int, default=64, help="bins per state dimension for proprioception tokens; 0: none (default: %(default)s)")
-    p.add_argument("--fsq-levels", type=int, nargs="+", default=[4, 4, 4, 4], help="FSQ levels per latent dimension; the vocabulary is their product, 256 by default like the VQ codebook (default: %(default)s)")
+    p.add_argument("--fsq-levels", type=int, nargs="+", default=[2] * 8, help="FSQ levels per latent channel; the vocabulary is their product, 2^8 = 256 by default like the VQ codebook (default: %(default)s)")
     p.add_argument("--baselines", default=True, action=argparse.BooleanOptionalAction, help="also fit and report the baselines (default: yes)")
     p.add_argument("--replay-episodes", type=int, default=None, help="demonstrations replayed for the closed-loop proof (default: all; 0: skip)")
     p.add_argument("--seed", type=int, default=0)
