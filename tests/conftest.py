@@ -38,3 +38,15 @@ def run_cli() -> Callable[..., subprocess.CompletedProcess]:
         )
 
     return run
+
+
+@pytest.fixture(scope="session")
+def pick_demos(tmp_path_factory) -> Path:
+    """Two PickCube-v1 motion-planner demonstrations (pd_ee_delta_pose, 64x64 RGB), collected once per session."""
+    from mmada_rl.data.collect import collect
+    from mmada_rl.envs.maniskill import EnvConfig
+
+    out = tmp_path_factory.mktemp("demos") / "PickCube-v1"
+    result = collect(out, EnvConfig(task="PickCube-v1"), episodes=2, progress=False)
+    assert result.new_episodes == 2
+    return out

@@ -35,12 +35,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def demo_dir(tmp_path_factory) -> Path:
-    """Two PickCube-v1 planner demonstrations recorded in pd_ee_delta_pose, 64x64 RGB."""
-    out = tmp_path_factory.mktemp("demos") / "pickcube"
-    result = collect(out, EnvConfig(task="PickCube-v1"), episodes=2, progress=False)
-    assert result.new_episodes == 2
-    return out
+def demo_dir(pick_demos) -> Path:
+    return pick_demos
 
 
 def test_planner_demos_load_back_in_the_configured_control_mode(demo_dir):

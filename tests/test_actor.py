@@ -1,0 +1,185 @@
+"""MMaDAActor and chunk execution on a real ManiSkill env (PickCube-v1, 64x64 RGB)."""
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mmada_rl.diffusion.path import DecodingPath, path_log_prob
+from mmada_rl.envs.maniskill import EnvConfig, make_env
+from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, ACTION_TOKENS_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+from mmada_rl.policy import (
+    DECODING_PATH_KEY,
+    PREDICTED_GOAL_IMAGE_KEY,
+    MMaDAActor,
+    MMaDAConfig,
+    MMaDAModel,
+    TemporalEnsemble,
+    Tokenizers,
+    make_policy_env,
+)
+from mmada_rl.tokenizers import (
+    TextTokenizer,
+    UniformBinActionTokenizer,
+    UniformBinActionTokenizerConfig,
+    VQActionTokenizer,
+    VQActionTokenizerConfig,
+    VQImageTokenizer,
+    VQImageTokenizerConfig,
+    fit_action_tokenizer,
+    fit_image_tokenizer,
+)
+
+torch.set_num_threads(1)
+# a tokenizer fitted on seven states clips most new ones: expected here, and warned about
+pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
+LOG_PROBS_KEY = ("vla_action", "log_probs")
+CHUNK = 4  # K of the tiny model
+EPISODE_STEPS = 7  # short episodes: a done falls inside the third chunk of k=3
+
+
+def build_tiny_model(images: torch.Tensor, states: torch.Tensor, actions: torch.Tensor, instruction: str) -> MMaDAModel:
+    """A ~0.1M-parameter policy whose tokenizers are fitted for a couple of steps on the given data."""
+    image = VQImageTokenizer(VQImageTokenizerConfig(image_size=images.shape[-1], grid_size=8, codebook_size=32, hidden_channels=8, embed_dim=8))
+    action = VQActionTokenizer(VQActionTokenizerConfig(action_dim=actions.shape[-1], codebook_size=16, tokens_per_action=2))
+    proprio = UniformBinActionTokenizer(UniformBinActionTokenizerConfig(action_dim=states.shape[-1], gripper_dims=(), num_bins=16))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # k-means on a handful of vectors warns about duplicates
+        fit_image_tokenizer(image, images, steps=2, batch_size=8, progress=False)
+        fit_action_tokenizer(action, actions, steps=2, batch_size=8, progress=False)
+        fit_action_tokenizer(proprio, states, progress=False)
+    config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3})
+    return MMaDAModel(config, Tokenizers(TextTokenizer().fit([instruction]), image, action, proprio)).eval()
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = make_env(EnvConfig(task="PickCube-v1", image_size=64, max_episode_steps=EPISODE_STEPS))
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def observations(env):
+    """Seven real observations, batch ``[7]`` (a random-action rollout)."""
+    return env.rollout(EPISODE_STEPS).exclude("next", ACTION_KEY)
+
+
+@pytest.fixture(scope="module")
+def model(observations):
+    torch.manual_seed(0)
+    return build_tiny_model(
+        observations[IMAGE_KEY], observations[STATE_KEY], torch.rand(64, 7) * 2 - 1, observations[INSTRUCTION_KEY][0]
+    )
+
+
+def test_keys_and_shapes_unbatched(model, observations):
+    actor = MMaDAActor(model, execute_steps=3)
+    assert actor.in_keys == [IMAGE_KEY, STATE_KEY, INSTRUCTION_KEY]
+    assert actor.out_keys == [ACTION_CHUNK_KEY, ACTION_TOKENS_KEY, LOG_PROBS_KEY, PREDICTED_GOAL_IMAGE_KEY, DECODING_PATH_KEY, ACTION_KEY]
+    td = actor(observations[0].clone())  # one env's output, batch []
+    assert td[ACTION_CHUNK_KEY].shape == (CHUNK, 7)
+    assert td[ACTION_TOKENS_KEY].shape == (CHUNK, 2)
+    assert td[LOG_PROBS_KEY].shape == () and td[LOG_PROBS_KEY] < 0
+    assert td[PREDICTED_GOAL_IMAGE_KEY].shape == (3, 64, 64) and td[PREDICTED_GOAL_IMAGE_KEY].dtype == torch.uint8
+    assert isinstance(td[DECODING_PATH_KEY], DecodingPath) and td[DECODING_PATH_KEY].batch_size == ()
+    torch.testing.assert_close(td[ACTION_KEY], td[ACTION_CHUNK_KEY][:3])
+
+
+def test_keys_and_shapes_batched(model, observations):
+    actor = MMaDAActor(model)
+    td = actor(observations[:3].clone())  # a ParallelEnv-like batch [3]
+    assert td[ACTION_CHUNK_KEY].shape == (3, CHUNK, 7) and td[ACTION_KEY].shape == (3, CHUNK, 7)
+    assert td[LOG_PROBS_KEY].shape == (3,) and td[DECODING_PATH_KEY].batch_size == (3,)
+    nested = actor(torch.stack([observations[:3], observations[3:6]]).clone())  # batch [2, 3]
+    assert nested[ACTION_TOKENS_KEY].shape == (2, 3, CHUNK, 2)
+    assert nested[PREDICTED_GOAL_IMAGE_KEY].shape == (2, 3, 3, 64, 64)
+    assert nested[DECODING_PATH_KEY].batch_size == (2, 3)
+
+
+def test_greedy_is_deterministic_and_random_samples(model, observations):
+    actor = MMaDAActor(model)
+    batch = observations[:3]
+    default = actor(batch.clone())[ACTION_TOKENS_KEY]
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = [actor(batch.clone(), generator=torch.Generator().manual_seed(s))[ACTION_TOKENS_KEY] for s in (0, 1)]
+    assert torch.equal(greedy[0], greedy[1]) and torch.equal(default, greedy[0])
+    with set_exploration_type(ExplorationType.RANDOM):
+        sampled = [actor(batch.clone(), generator=torch.Generator().manual_seed(s))[ACTION_TOKENS_KEY] for s in (0, 1, 0)]
+    assert not torch.equal(sampled[0], sampled[1])
+    assert torch.equal(sampled[0], sampled[2])
+
+
+def test_stored_path_log_prob_is_recomputed_exactly(model, observations):
+    actor = MMaDAActor(model)
+    with set_exploration_type(ExplorationType.RANDOM):
+        td = actor(observations[:3].clone(), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        replayed = path_log_prob(model.denoiser, td[DECODING_PATH_KEY])
+        torch.testing.assert_close(replayed, td[LOG_PROBS_KEY], rtol=1e-4, atol=1e-3)
+        rescored = actor.log_prob(td.clone(), log_probs_key="rescored")["rescored"]
+    torch.testing.assert_close(rescored, td[LOG_PROBS_KEY], rtol=1e-4, atol=1e-3)
+
+
+def test_set_keys_moves_our_fields_with_the_root(model):
+    actor = MMaDAActor(model).set_keys(vla_action="policy")
+    assert ("policy", "goal_image") in actor.out_keys and ("policy", "path") in actor.out_keys
+
+
+@pytest.mark.parametrize("bad", [0, CHUNK + 1, 2.0])
+def test_execute_steps_must_lie_in_one_to_chunk_size(model, bad):
+    with pytest.raises(ValueError, match=r"execute_steps must be an int in \[1, chunk_size=4\]"):
+        MMaDAActor(model, execute_steps=bad)
+
+
+def test_chunks_run_k_env_steps_and_stop_at_done(env, model):
+    penv = make_policy_env(env, MMaDAActor(model), execute_steps=3, log_keys=["step_count"])
+    rollout = penv.env.rollout(10, penv.policy)  # breaks at the first done
+    assert rollout[ACTION_KEY].shape == (3, 3, 7)  # three decisions of k=3 actions
+    assert rollout["next", "step_count"].squeeze(-1).tolist() == [3, 6, EPISODE_STEPS]  # 7: the done cut chunk 3 short
+    assert rollout["next", "done"].squeeze(-1).tolist() == [False, False, True]
+    assert [int(s["step_count"]) for s in penv.step_log.steps] == list(range(EPISODE_STEPS + 1))
+    with pytest.raises(ValueError, match="temporal_ensemble replans at every step"):
+        make_policy_env(env, MMaDAActor(model), execute_steps=2, temporal_ensemble=True)
+
+
+def test_temporal_ensemble_in_env(env, model):
+    penv = make_policy_env(env, MMaDAActor(model), temporal_ensemble=True)
+    rollout = penv.env.rollout(EPISODE_STEPS + 2, penv.policy, break_when_any_done=False)
+    assert rollout[ACTION_KEY].shape == (EPISODE_STEPS + 2, 1, 7)
+    assert rollout["next", "step_count"].squeeze(-1).tolist() == [*range(1, EPISODE_STEPS + 1), 1, 2]  # one step per call
+
+
+class _CountingChunks(TensorDictModuleBase):
+    """Call ``c`` returns the chunk ``[10c, 10c + 1, ...]`` (one action dim)."""
+
+    in_keys, out_keys = [IMAGE_KEY], [ACTION_CHUNK_KEY]
+
+    def __init__(self):
+        super().__init__()
+        self.calls = 0
+
+    def forward(self, td):
+        self.calls += 1
+        return td.set(ACTION_CHUNK_KEY, (10.0 * self.calls + torch.arange(3.0)).reshape(3, 1))
+
+
+def test_temporal_ensemble_weights_the_overlapping_predictions():
+    policy = TemporalEnsemble(_CountingChunks(), decay=0.0)
+
+    def step(is_init):
+        td = TensorDict({IMAGE_KEY: torch.zeros(1), "is_init": torch.tensor([is_init])}, [])
+        return policy(td)[ACTION_KEY].item()
+
+    assert step(True) == 10.0  # only chunk 1, index 0
+    assert step(False) == pytest.approx((20 + 11) / 2)  # chunk 2 at 0, chunk 1 at 1
+    assert step(False) == pytest.approx((30 + 21 + 12) / 3)
+    assert step(False) == pytest.approx((40 + 31 + 22) / 3)  # chunk 1 has run out
+    assert step(True) == 50.0  # a reset drops the history
+    policy = TemporalEnsemble(_CountingChunks(), decay=1.0)  # ACT: exp(-m i), i = 0 the oldest
+    step(True)
+    assert step(False) == pytest.approx((11 * 1 + 20 * torch.e**-1) / (1 + torch.e**-1))

@@ -1,0 +1,86 @@
+"""Evaluation protocol, its outputs and the ``mmada-rl eval`` command."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from mmada_rl.cli import main
+from mmada_rl.envs.tasks import UnknownTaskError, task_spec
+from mmada_rl.evaluation import EVAL_SEED_BASE, eval_seeds, evaluate, resolve_model_dir, wilson_interval
+from test_actor import build_tiny_model  # the tiny policy of the actor tests
+
+torch.set_num_threads(1)
+pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    """A tiny policy saved by ``MMaDAModel.save`` (tokenizers fitted on random data: no env needed)."""
+    gen = torch.Generator().manual_seed(0)
+    images = torch.randint(0, 256, (16, 3, 64, 64), dtype=torch.uint8, generator=gen)
+    states = torch.randn(64, 29, generator=gen)
+    actions = torch.rand(64, 7, generator=gen) * 2 - 1
+    model = build_tiny_model(images, states, actions, task_spec("PickCube-v1").instruction)
+    return model.save(tmp_path_factory.mktemp("policy") / "model")
+
+
+def test_wilson_interval_matches_hand_computation():
+    # 7/10, z = 1.96: centre (0.7 + 1.9208/10) / 1.38415 = 0.64449, half-width 0.24770
+    low, high = wilson_interval(7, 10)
+    assert low == pytest.approx(0.39677, abs=1e-4) and high == pytest.approx(0.89220, abs=1e-4)
+    assert wilson_interval(0, 2) == pytest.approx((0.0, 0.65762), abs=1e-4)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    with pytest.raises(ValueError, match="successes=3, trials=2"):
+        wilson_interval(3, 2)
+
+
+def test_evaluation_seeds_are_disjoint_from_training_seeds():
+    assert eval_seeds(3, seed_offset=5) == [EVAL_SEED_BASE + 5, EVAL_SEED_BASE + 6, EVAL_SEED_BASE + 7]
+    with pytest.raises(ValueError, match="seed_offset must be >= 0"):
+        eval_seeds(3, seed_offset=-1)
+
+
+def test_model_dir_is_found_directly_or_under_model(model_dir, tmp_path):
+    assert resolve_model_dir(model_dir) == model_dir
+    assert resolve_model_dir(model_dir.parent) == model_dir  # a checkpoint directory holding model/
+    with pytest.raises(FileNotFoundError, match="no MMaDA policy"):
+        resolve_model_dir(tmp_path)
+
+
+def test_clear_errors_before_any_env_is_built(model_dir):
+    with pytest.raises(ValueError, match=r"image_size=32 .* fitted on 64x64"):
+        evaluate(model_dir, "PickCube-v1", 1, image_size=32)
+    with pytest.raises(UnknownTaskError, match="NoSuchTask-v9"):
+        evaluate(model_dir, "NoSuchTask-v9", 1)
+
+
+def test_evaluate_two_short_episodes(model_dir, tmp_path):
+    result = evaluate(
+        model_dir.parent, "PickCube-v1", 2, max_episode_steps=6, execute_steps=2, num_denoise_steps=2,
+        out_dir=tmp_path, video=True, goal_grid=True, progress=False,
+    )  # fmt: skip
+    metrics = result.to_dict()
+    for name in ("success_once", "success_at_end"):
+        rate, low, high = (metrics[f"eval/{name}{s}"] for s in ("", "_ci_low", "_ci_high"))
+        assert 0.0 <= low <= rate <= high <= 1.0
+    assert result.seeds == [EVAL_SEED_BASE, EVAL_SEED_BASE + 1]
+    assert [r.steps for r in result.per_episode] == [6, 6]  # run to the limit: terminations ignored
+    assert [len(r.decode_ms) for r in result.per_episode] == [3, 3]  # 6 steps / k=2
+    assert 1 <= result.episode_length <= 6 and result.max_episode_steps == 6
+    assert 0 < result.decode_ms_mean <= result.decode_ms_p95 and result.env_steps_per_second > 0
+    assert result.num_denoise_steps == 2
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    assert saved["eval/success_once"] == result.success_once and len(saved["per_episode"]) == 2
+    assert "success_once" in (tmp_path / "eval.md").read_text()
+    assert (tmp_path / "goal_grid.png").stat().st_size > 0
+    assert len(list((tmp_path / "videos").iterdir())) == 2
+
+
+def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
+    done = run_cli("eval", "--help", timeout=120)
+    assert done.returncode == 0 and "--execute-steps" in done.stdout and "--temporal-ensemble" in done.stdout
+    assert main(["eval", "--checkpoint", str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mmada-rl eval: error: no MMaDA policy at") and "\n" not in err
