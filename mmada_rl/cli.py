@@ -14,6 +14,7 @@ _COMMANDS = (
     "mmada_rl.doctor",
     "mmada_rl.data.cli",
     "mmada_rl.tokenizers.cli",
+    "mmada_rl.quickstart",
     "mmada_rl.evaluation",
 )
 

@@ -183,3 +183,19 @@ def test_temporal_ensemble_weights_the_overlapping_predictions():
     policy = TemporalEnsemble(_CountingChunks(), decay=1.0)  # ACT: exp(-m i), i = 0 the oldest
     step(True)
     assert step(False) == pytest.approx((11 * 1 + 20 * torch.e**-1) / (1 + torch.e**-1))
+
+
+@pytest.mark.slow
+def test_parallel_env_runs_chunks_across_episode_ends(model):
+    env = make_env(EnvConfig(task="PickCube-v1", image_size=64, max_episode_steps=EPISODE_STEPS, num_workers=2))
+    try:
+        penv = make_policy_env(env, MMaDAActor(model), execute_steps=3)
+        rollout = penv.env.rollout(4, penv.policy, break_when_any_done=False)  # the third chunk ends the episodes
+        assert rollout["next", "step_count"].squeeze(-1).tolist() == [[3, 6, EPISODE_STEPS, 3]] * 2
+        assert rollout[LOG_PROBS_KEY].shape == (2, 4) and rollout[ACTION_CHUNK_KEY].shape == (2, 4, CHUNK, 7)
+        ensemble = make_policy_env(env, MMaDAActor(model), temporal_ensemble=True)
+        rollout = ensemble.env.rollout(EPISODE_STEPS + 1, ensemble.policy, break_when_any_done=False)
+        assert rollout[ACTION_KEY].shape == (2, EPISODE_STEPS + 1, 1, 7)
+        assert rollout["is_init"].squeeze(-1).tolist() == [[True] + [False] * (EPISODE_STEPS - 1) + [True]] * 2
+    finally:
+        env.close()

@@ -1,4 +1,4 @@
-"""Sub-commands ``collect``, ``info``, ``import-h5`` and ``quickstart``."""
+"""Sub-commands ``collect``, ``info`` and ``import-h5``."""
 from __future__ import annotations
 
 import argparse
@@ -80,19 +80,6 @@ def _run_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_quickstart(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    out = Path(args.out) / "demos"
-    print(f"[quickstart] collecting {args.episodes} {args.task} motion-planner demonstrations into {out}")
-    collect_args = argparse.Namespace(
-        task=args.task, control_mode="pd_ee_delta_pose", obs_mode="rgb", image_size=64, reward="dense",
-        max_episode_steps=None, out=str(out), episodes=args.episodes, policy="planner", only_success=None,
-        seed=0, max_attempts=None,
-    )
-    return _run_collect(collect_args)
-
-
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "collect",
@@ -126,9 +113,3 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, help="buffer directory")
     p.add_argument("--keep-failures", action="store_true", help="also import trajectories that do not succeed after replay.")
     p.set_defaults(func=_run_import)
-
-    p = sub.add_parser("quickstart", help="the README's main job", description="Collect a small PickCube-v1 demonstration buffer and print its summary.")
-    p.add_argument("--task", default="PickCube-v1", help="task (default: %(default)s)")
-    p.add_argument("--episodes", type=int, default=10, help="demonstrations to collect (default: %(default)s)")
-    p.add_argument("--out", default="runs/quickstart", help="output directory (default: %(default)s)")
-    p.set_defaults(func=_run_quickstart)

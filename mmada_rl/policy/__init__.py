@@ -1,4 +1,19 @@
 """The MMaDA-VLA policy: tokenizers + unified sequence + denoiser + sampler, and its TorchRL actor."""
+from mmada_rl.policy.actor import DECODING_PATH_KEY, PREDICTED_GOAL_IMAGE_KEY, MMaDAActor, check_execute_steps
+from mmada_rl.policy.execution import PolicyEnv, StepLog, TemporalEnsemble, make_policy_env
 from mmada_rl.policy.model import MMaDAConfig, MMaDAModel, PolicyOutput, Tokenizers
 
-__all__ = ["MMaDAConfig", "MMaDAModel", "PolicyOutput", "Tokenizers"]
+__all__ = [
+    "MMaDAConfig",
+    "MMaDAModel",
+    "PolicyOutput",
+    "Tokenizers",
+    "MMaDAActor",
+    "DECODING_PATH_KEY",
+    "PREDICTED_GOAL_IMAGE_KEY",
+    "check_execute_steps",
+    "PolicyEnv",
+    "StepLog",
+    "TemporalEnsemble",
+    "make_policy_env",
+]

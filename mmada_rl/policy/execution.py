@@ -1,0 +1,198 @@
+"""Executing action chunks in a TorchRL env: receding horizon and temporal ensembling.
+
+One policy call decodes a chunk of ``K`` actions; the env then executes its first
+``k`` (``1 <= k <= K``) before the policy is called again. ``k = K`` is the
+authors' open-loop choice; smaller ``k`` replans more often (closed loop) at the
+price of more decodes.
+
+The env side is TorchRL's :class:`~torchrl.envs.transforms.MultiAction`: the
+actor writes ``"action"`` as ``[*B, k, A]`` and one outer ``env.step`` runs the
+``k`` inner steps, stopping early at ``done``. We use it rather than the
+policy-side ``MultiStepActorWrapper`` because it keeps one outer transition per
+decision (the chunk's tokens, log-probability and decoding path ride along on
+it, which is what reward-weighted fine-tuning consumes), replays nothing when an
+episode ends inside a chunk, and works unchanged with ``ParallelEnv``.
+``stack_rewards=False``: the outer transition carries one reward entry (not a
+ragged stack); see :func:`make_policy_env` for what it holds.
+
+:class:`TemporalEnsemble` is the policy-side alternative of ACT: replan at every
+step (``k = 1``) and execute a weighted average of the predictions for the
+current step made by the last ``K`` chunks.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
+from torchrl.envs.transforms import MultiAction, Transform
+
+from mmada_rl.envs.maniskill import EnvConfig, make_env
+from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY
+from mmada_rl.policy.actor import MMaDAActor, check_execute_steps
+
+__all__ = ["PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
+
+#: written by :class:`~torchrl.envs.transforms.InitTracker`: True on the first step after a reset.
+INIT_KEY = "is_init"
+
+
+class TemporalEnsemble(TensorDictModuleBase):
+    """ACT-style temporal ensembling of overlapping chunks (policy side, replans every step).
+
+    Every call decodes a new chunk ``[*B, K, A]``; the action written to
+    ``"action"`` (``[*B, 1, A]``) averages the predictions for the current step
+    of the last ``K`` chunks (the chunk decoded ``h`` steps ago predicts it at
+    its index ``h``), with ACT's weights ``w_i = exp(-decay * i)``, ``i = 0``
+    for the oldest prediction. ``decay > 0`` trusts older chunks more, ``0``
+    averages uniformly. The history of an env is dropped when ``"is_init"``
+    (TorchRL's :class:`~torchrl.envs.transforms.InitTracker`) marks a reset.
+
+    Args:
+        actor: an :class:`~mmada_rl.policy.actor.MMaDAActor` (any ``execute_steps``).
+        decay: ``m`` in ``exp(-m * i)``; ACT uses 0.01.
+
+    Examples:
+        >>> policy = TemporalEnsemble(MMaDAActor(model), decay=0.01)
+        >>> td = policy(env.reset())                 # env with an InitTracker
+        >>> td["action"].shape
+        torch.Size([1, 7])
+    """
+
+    def __init__(self, actor: MMaDAActor, decay: float = 0.01) -> None:
+        super().__init__()
+        if not decay >= 0:
+            raise ValueError(f"decay must be >= 0 (weights exp(-decay * i), i=0 the oldest), got {decay!r}.")
+        self.actor = actor
+        self.decay = float(decay)
+        self.in_keys = [*actor.in_keys, INIT_KEY]
+        self.out_keys = list(actor.out_keys)
+        self.reset_history()
+
+    def reset_history(self) -> None:
+        """Forget every stored chunk."""
+        self._chunks: torch.Tensor | None = None  # (*B, H=K, K, A): slot h holds the chunk decoded h steps ago
+        self._valid: torch.Tensor | None = None  # (*B, H)
+
+    def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
+        out = self.actor(tensordict, **kwargs)
+        chunk = out.get(ACTION_CHUNK_KEY)  # (*B, K, A)
+        batch, horizon = chunk.shape[:-2], chunk.shape[-2]
+        if self._chunks is None or self._chunks.shape[:-3] != batch or self._chunks.device != chunk.device:
+            self._chunks = chunk.new_zeros(*batch, horizon, *chunk.shape[-2:])
+            self._valid = torch.zeros(*batch, horizon, dtype=torch.bool, device=chunk.device)
+        is_init = tensordict.get(INIT_KEY, None)
+        valid = self._valid
+        if is_init is not None:
+            valid = valid & ~is_init.reshape(*batch, 1).to(valid.device)  # a reset drops the history
+        self._valid = torch.cat([torch.ones_like(valid[..., :1]), valid[..., :-1]], -1)  # (*B, H)
+        self._chunks = torch.cat([chunk.unsqueeze(-3), self._chunks[..., :-1, :, :]], -3)  # (*B, H, K, A)
+        age = torch.arange(horizon, device=chunk.device)  # (H,): slot h predicts the current step at index h
+        index = age.view(horizon, 1, 1).expand(*batch, horizon, 1, chunk.shape[-1])
+        current = self._chunks.gather(-2, index).squeeze(-2)  # (*B, H, A)
+        # exp(-decay * i) with i counted from the oldest valid slot equals exp(decay * h) up to a constant
+        weights = torch.exp(self.decay * (age - (horizon - 1)).to(chunk.dtype)) * self._valid  # (*B, H)
+        action = (weights[..., None] * current).sum(-2) / weights.sum(-1, keepdim=True)  # (*B, A)
+        out.set(ACTION_KEY, action.unsqueeze(-2))  # (*B, 1, A)
+        return out
+
+
+class StepLog(Transform):
+    """Keep selected entries of every executed env step in memory (single env, for evaluation).
+
+    Placed before :class:`~torchrl.envs.transforms.MultiAction`, it sees each
+    inner step of a chunk, which the outer transition does not show. ``steps[0]``
+    is the reset observation, ``steps[t]`` the state after ``t`` actions. The log
+    lives in the process that steps the env, so it is empty for ``ParallelEnv``.
+
+    Args:
+        keys: the entries to keep (e.g. ``("observation", "image")``, ``"success"``).
+    """
+
+    def __init__(self, keys: list) -> None:
+        super().__init__()
+        self.keys = list(keys)
+        # MultiAction steps a rebuilt parent env holding a shallow clone of this transform:
+        # keep the records in one shared list that is cleared, never rebound.
+        self._steps: list[TensorDictBase] = []
+
+    @property
+    def steps(self) -> list[TensorDictBase]:
+        """The entries of every step since the last reset (``steps[t]``: after ``t`` actions)."""
+        return self._steps
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        self._steps.clear()
+        self._steps.append(tensordict_reset.select(*self.keys, strict=False).clone())
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        self._steps.append(next_tensordict.select(*self.keys, strict=False).clone())
+        return next_tensordict
+
+
+class PolicyEnv(NamedTuple):
+    """What :func:`make_policy_env` returns."""
+
+    env: TransformedEnv  # one outer step = k inner steps
+    policy: TensorDictModuleBase  # the actor (or its TemporalEnsemble) to pass to env.rollout / collectors
+    actor: MMaDAActor  # the actor inside ``policy`` (``last_decode_seconds``)
+    step_log: StepLog | None  # every inner step, when ``log_keys`` was given
+
+
+def make_policy_env(
+    env: EnvConfig | EnvBase,
+    actor: MMaDAActor,
+    *,
+    execute_steps: int | None = None,
+    temporal_ensemble: bool = False,
+    ensemble_decay: float = 0.01,
+    log_keys: list | None = None,
+) -> PolicyEnv:
+    """Wrap an env so that one policy call decodes a chunk and the first ``k`` actions run.
+
+    Args:
+        env: an :class:`~mmada_rl.envs.maniskill.EnvConfig` (built with ``make_env``)
+            or an env already built (it is wrapped, not copied).
+        actor: the actor; it is not modified (a shallow copy gets ``execute_steps``).
+        execute_steps: ``k``, actions executed per chunk before replanning,
+            ``1 <= k <= K``; ``None``: ``K`` (open loop), or 1 with ``temporal_ensemble``.
+        temporal_ensemble: replan every step and execute ACT's ensemble of the
+            last ``K`` chunks' predictions (needs ``k = 1``).
+        ensemble_decay: ``m`` of the ensemble weights ``exp(-m * i)``.
+        log_keys: keep these entries of every inner step in ``step_log`` (single env).
+
+    The outer transition's ``("next", "reward")`` is the reward of the chunk's
+    last executed step — 0 when a ``done`` inside the chunk cut it short
+    (``MultiAction(stack_rewards=False)``); ``("next", "step_count")`` counts
+    inner steps.
+
+    Examples:
+        >>> penv = make_policy_env(EnvConfig("PickCube-v1"), MMaDAActor(model), execute_steps=2)
+        >>> rollout = penv.env.rollout(10, penv.policy)        # 10 decisions, 20 env steps
+        >>> rollout["next", "step_count"][-1]
+        tensor([20])
+    """
+    chunk_size = actor.chunk_size
+    if temporal_ensemble:
+        if execute_steps not in (None, 1):
+            raise ValueError(f"temporal_ensemble replans at every step: execute_steps must be 1 (or None), got {execute_steps!r}.")
+        execute_steps = 1
+    k = check_execute_steps(execute_steps, chunk_size)
+    inner = make_env(env) if isinstance(env, EnvConfig) else env
+    if inner.batch_size and inner.device is None:
+        # a ParallelEnv without a device returns device-less instructions, except after the partial
+        # step of a done inside a chunk (device cpu): rollouts then fail to stack (TorchRL 0.14.1)
+        inner = inner.to("cpu")
+    step_log = StepLog(log_keys) if log_keys else None
+    transforms = [MultiAction(stack_rewards=False), InitTracker()]  # InitTracker after: once per decision
+    if step_log is not None:
+        transforms.insert(0, step_log)  # before MultiAction: called at every inner step
+    # auto_unwrap=False: leave the given env intact (TorchRL would otherwise move its
+    # transforms into this env's Compose, re-parenting them when an env is wrapped twice)
+    outer = TransformedEnv(inner, Compose(*transforms), auto_unwrap=False)
+    runner = actor if actor.execute_steps == k else actor.get_new_version(execute_steps=k)
+    policy = TemporalEnsemble(runner, ensemble_decay) if temporal_ensemble else runner
+    return PolicyEnv(outer, policy, runner, step_log)
