@@ -216,7 +216,8 @@ def make_env(task: str | EnvConfig = "PickCube-v1", **overrides) -> TransformedE
     if cfg.num_workers == 1:
         return _make_single_env(cfg)
     # ``spawn`` (ParallelEnv's default): ``fork`` deadlocks SAPIEN at the first reset.
-    return ParallelEnv(cfg.num_workers, _EnvFactory(cfg), mp_start_method="spawn")
+    # device="cpu": without a device, TorchRL 0.14.1 fails to stack a rollout whose episode ends mid-chunk
+    return ParallelEnv(cfg.num_workers, _EnvFactory(cfg), mp_start_method="spawn", device="cpu")
 
 
 class _EnvFactory:
