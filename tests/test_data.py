@@ -245,3 +245,18 @@ def test_interrupted_collection_is_loadable_and_resumes(tmp_path, sig):
     assert buf.metadata.num_episodes == 3
     assert torch.equal(next(buf.episodes())["action"], first)  # resumed, not overwritten
     assert len(set(buf.metadata.seeds)) == 3
+
+
+@pytest.mark.parametrize("task", ["PickCube-v1", "PushCube-v1", "PullCube-v1"])
+def test_scripted_experts_solve_their_tasks_in_pd_ee_delta_pose(tmp_path, task):
+    res = collect(tmp_path / task, EnvConfig(task=task, obs_mode="state"), episodes=2, policy="scripted", progress=False)
+    assert res.new_episodes == 2 and res.attempts == 2  # no failed attempt
+    ep = next(res.buffer.episodes())
+    assert ep["next", "success"][-1].item() and res.buffer.metadata.source == "scripted"
+
+
+def test_scripted_expert_refuses_other_tasks_and_control_modes(tmp_path):
+    with pytest.raises(ValueError, match="no scripted expert for 'StackCube-v1'"):
+        collect(tmp_path / "a", EnvConfig(task="StackCube-v1", obs_mode="state"), episodes=1, policy="scripted", progress=False)
+    with pytest.raises(ValueError, match="pd_ee_delta_pose"):
+        collect(tmp_path / "b", EnvConfig(task="PushCube-v1", obs_mode="state", control_mode="pd_joint_delta_pos"), episodes=1, policy="scripted", progress=False)

@@ -90,10 +90,11 @@ def add_parser(sub) -> None:
     add_env_arguments(p)
     p.add_argument("--episodes", type=int, required=True, help="number of episodes the buffer should hold in the end.")
     p.add_argument("--out", required=True, help="buffer directory (created, or resumed if it already holds one).")
-    p.add_argument("--policy", default="planner", choices=["planner", "random"],
-                   help="planner: ManiSkill's motion-planning solution converted to --control-mode; random: uniform actions (default: %(default)s).")
+    p.add_argument("--policy", default="planner", choices=["planner", "scripted", "random"],
+                   help="planner: ManiSkill's motion-planning solution converted to --control-mode; scripted: a state-based "
+                   "expert (PickCube, PushCube, PullCube; pd_ee_delta_pose); random: uniform actions (default: %(default)s).")
     p.add_argument("--only-success", default=None, action=argparse.BooleanOptionalAction,
-                   help="keep only episodes reaching the task's success (default: yes for the planner, no for random).")
+                   help="keep only episodes reaching the task's success (default: yes for planner and scripted, no for random).")
     p.add_argument("--seed", type=int, default=0, help="first env seed of a new buffer (default: %(default)s).")
     p.add_argument("--max-attempts", type=int, default=None, help="give up after this many attempts (default: 3 × missing episodes + 10).")
     p.set_defaults(func=_run_collect)

@@ -13,7 +13,7 @@ from mmada_rl.data.sources import PlannerSource, PolicySource
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.envs.tasks import task_spec
 
-SOURCES = ("planner", "random")
+SOURCES = ("planner", "scripted", "random")
 
 
 @dataclass
@@ -34,11 +34,15 @@ class CollectResult:
 
 
 def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None):
-    """The episode source named ``policy`` (``"planner"``, ``"random"``), or a TorchRL policy object."""
+    """The episode source named ``policy`` (``"planner"``, ``"scripted"``, ``"random"``), or a TorchRL policy object."""
     if torchrl_policy is not None:
         return PolicySource(cfg, torchrl_policy)
     if policy == "planner":
         return PlannerSource(cfg)
+    if policy == "scripted":
+        from mmada_rl.data.scripted import ScriptedSource
+
+        return ScriptedSource(cfg)
     if policy == "random":
         return PolicySource(cfg, None)
     raise ValueError(f"unknown --policy {policy!r}; choose one of {SOURCES}.")
@@ -64,16 +68,17 @@ def collect(
         cfg: the environment the episodes are recorded in.
         episodes: total number of episodes the buffer should hold.
         policy: ``"planner"`` (ManiSkill's motion planner, converted to
-            ``cfg.control_mode``) or ``"random"``.
+            ``cfg.control_mode``), ``"scripted"`` (a state-based expert, see
+            :mod:`mmada_rl.data.scripted`) or ``"random"``.
         torchrl_policy: any TorchRL policy module; overrides ``policy``.
         only_success: keep only episodes that reach success (default: True for
-            the planner, False otherwise).
+            the planner and scripted experts, False otherwise).
         seed: first env seed of a new buffer (a resumed one continues from its ``next_seed``).
         max_attempts: stop after this many tries in this run (default: 3 × missing episodes + 10).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be positive, got {episodes}.")
-    only_success = (policy == "planner" and torchrl_policy is None) if only_success is None else only_success
+    only_success = (policy in ("planner", "scripted") and torchrl_policy is None) if only_success is None else only_success
     source = make_source(cfg, policy, torchrl_policy)
     meta = BufferMetadata(
         task=cfg.task,
