@@ -1,4 +1,12 @@
-"""Evaluate a saved policy on a ManiSkill3 task, and the ``mmada-rl eval`` command.
+"""Evaluate a policy on a ManiSkill3 task, and the ``mmada-rl eval`` command.
+
+Any chunk policy runs here: the MMaDA-VLA policy (an :class:`MMaDAModel`, its
+:class:`MMaDAActor`, or a directory saved by ``MMaDAModel.save``) and the
+imitation baselines of :mod:`mmada_rl.baselines` (a policy object, or a
+directory saved by its ``save``), or any actor that writes
+``("vla_action", "chunk")`` ``[*B, K, A]`` and ``"action"`` ``[*B, k, A]`` and has
+``chunk_size``, ``action_dim``, ``execute_steps``, ``get_new_version`` and
+``last_decode_seconds`` as :class:`MMaDAActor` does.
 
 Protocol (ManiSkill's): every episode runs to the task's ``max_episode_steps``
 with ``ignore_terminations=True`` so that both ``success_once`` (success at any
@@ -24,10 +32,12 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from tqdm.auto import tqdm
 
+from mmada_rl.baselines import POLICY_CONFIG, is_policy_dir, load_policy
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
@@ -71,14 +81,15 @@ def wilson_interval(successes: int, trials: int, z: float = _Z95) -> Interval:
 
 
 def resolve_model_dir(path: str | Path) -> Path:
-    """The directory holding ``model.json``: ``path`` itself or ``path/model``."""
+    """The directory holding ``model.json`` (or a baseline's ``policy.json``): ``path`` itself or ``path/model``."""
     path = Path(path)
     for candidate in (path, path / "model"):
-        if (candidate / MODEL_CONFIG).is_file():
+        if (candidate / MODEL_CONFIG).is_file() or is_policy_dir(candidate):
             return candidate
     raise FileNotFoundError(
         f"no MMaDA policy at {path}: expected {path / MODEL_CONFIG} or {path / 'model' / MODEL_CONFIG} "
-        "(a directory written by MMaDAModel.save, or a checkpoint directory holding one under model/)."
+        "(a directory written by MMaDAModel.save, or a checkpoint directory holding one under model/), "
+        f"or a baseline's {POLICY_CONFIG} there."
     )
 
 
@@ -90,7 +101,7 @@ class EpisodeResult(NamedTuple):
     success_at_end: bool  # success after the last step
     length: int  # steps until the first success, or all steps run
     steps: int  # env steps run
-    decode_ms: list[float]  # model.act latency of each chunk
+    decode_ms: list[float]  # policy latency of each chunk (model.act for MMaDA)
 
 
 @dataclass
@@ -137,19 +148,31 @@ class EvalResult:
         return "\n".join(lines)
 
 
-def _load(model: MMaDAModel | str | Path, device: str) -> MMaDAModel:
-    if isinstance(model, MMaDAModel):
+def _load(model: MMaDAModel | TensorDictModuleBase | str | Path, device: str) -> MMaDAModel | TensorDictModuleBase:
+    """An :class:`MMaDAModel` or a chunk actor, loaded when given as a directory."""
+    if isinstance(model, (MMaDAModel, TensorDictModuleBase)):
         return model
-    return MMaDAModel.load(resolve_model_dir(model), device=device)
+    directory = resolve_model_dir(model)
+    if (directory / MODEL_CONFIG).is_file():
+        return MMaDAModel.load(directory, device=device)
+    return load_policy(directory, device=device)
 
 
-def _env_config(model: MMaDAModel, task: str, image_size: int | None, **kwargs) -> EnvConfig:
-    if image_size is not None and image_size != model.image_size:
+def _image_size(actor) -> int | None:
+    """The image side the policy was fitted on (``None``: it does not say)."""
+    if isinstance(actor, MMaDAActor):
+        return actor.model.image_size
+    return getattr(actor, "image_size", None)
+
+
+def _env_config(policy_size: int | None, task: str, image_size: int | None, **kwargs) -> EnvConfig:
+    if image_size is not None and policy_size is not None and image_size != policy_size:
         raise ValueError(
-            f"env image_size={image_size} but the model's image tokenizer was fitted on "
-            f"{model.image_size}x{model.image_size} images; evaluate with image_size={model.image_size}."
+            f"env image_size={image_size} but the policy's image tokenizer / encoder was fitted on "
+            f"{policy_size}x{policy_size} images; evaluate with image_size={policy_size}."
         )
-    return EnvConfig(task=task, obs_mode="rgb", image_size=model.image_size, ignore_terminations=True, **kwargs)
+    size = policy_size or image_size
+    return EnvConfig(task=task, obs_mode="rgb", ignore_terminations=True, **({"image_size": size} if size else {}), **kwargs)
 
 
 class _Rollout(NamedTuple):
@@ -165,7 +188,7 @@ def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int) -> _Rollout:
     for _ in range(max_decisions):
         step = int(td.get(STEP_KEY))
         td = penv.policy(td)
-        decode_ms.append(1e3 * penv.actor.last_decode_seconds)
+        decode_ms.append(1e3 * float(getattr(penv.actor, "last_decode_seconds", float("nan"))))
         decisions.append((step, td.get(PREDICTED_GOAL_IMAGE_KEY, None)))
         td = penv.env.step(td)
         if td.get(("next", "done")).any():
@@ -179,7 +202,7 @@ def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int) -> _Rollout:
 
 
 def evaluate(
-    model: MMaDAModel | str | Path,
+    model: MMaDAModel | TensorDictModuleBase | str | Path,
     task: str,
     episodes: int = 50,
     *,
@@ -199,17 +222,20 @@ def evaluate(
     """Roll the policy out greedily on fixed evaluation seeds and measure success.
 
     Args:
-        model: an :class:`MMaDAModel`, or a directory saved by ``MMaDAModel.save``
-            (or a checkpoint directory holding one under ``model/``).
+        model: the policy: an :class:`MMaDAModel` or its :class:`MMaDAActor`, a
+            baseline policy (:mod:`mmada_rl.baselines`) or any chunk actor (see the
+            module docstring), or a directory saved by ``MMaDAModel.save`` or a
+            baseline's ``save`` (or a checkpoint directory holding one under ``model/``).
         task: ManiSkill3 task id.
         episodes: evaluation episodes (seeds :func:`eval_seeds`).
         seed_offset: first evaluation seed is ``EVAL_SEED_BASE + seed_offset``.
         execute_steps: actions executed per chunk (``None``: the whole chunk).
         temporal_ensemble: replan every step with ACT's temporal ensemble.
-        num_denoise_steps: decoding steps ``N`` (``None``: the model's sampler config).
+        num_denoise_steps: decoding steps ``N`` (``None``: the policy's own; a
+            baseline takes it as ``get_new_version(num_denoise_steps=N)``).
         max_episode_steps: episode length (``None``: the task registry's).
         control_mode: ManiSkill controller; must match the one the policy was trained in.
-        image_size: checked against the model's image tokenizer (``None``: take it).
+        image_size: checked against the policy's image size (``None``: take it).
         out_dir: write ``eval.json``, ``eval.md`` (and videos, goal grid) here.
         video: save each episode's frames (MP4 with imageio-ffmpeg, else GIF).
         goal_grid: save a PNG of the first episode's predicted goals beside the real frames.
@@ -225,15 +251,22 @@ def evaluate(
     """
     seeds = eval_seeds(episodes, seed_offset)
     EnvConfig(task=task)  # an unknown task fails before the model loads
-    model = _load(model, device)
-    cfg = _env_config(model, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
-    saved_sampler, penv = model.sampler, None
+    loaded = _load(model, device)
+    actor = MMaDAActor(loaded) if isinstance(loaded, MMaDAModel) else loaded
+    cfg = _env_config(_image_size(actor), task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
+    mmada = actor.model if isinstance(actor, MMaDAActor) else None
+    saved_sampler, penv = mmada.sampler if mmada is not None else None, None
     try:
-        if num_denoise_steps is not None:
-            model.sampler = MaskedDiffusionSampler(SamplerConfig(**{**asdict(model.sampler.config), "num_steps": num_denoise_steps}))
-        num_steps = model.sampler.config.num_steps
+        if mmada is not None:
+            if num_denoise_steps is not None:
+                mmada.sampler = MaskedDiffusionSampler(SamplerConfig(**{**asdict(mmada.sampler.config), "num_steps": num_denoise_steps}))
+            num_steps = mmada.sampler.config.num_steps
+        else:
+            if num_denoise_steps is not None:
+                actor = actor.get_new_version(num_denoise_steps=num_denoise_steps)
+            num_steps = int(getattr(actor, "num_denoise_steps", 0))
         penv = make_policy_env(
-            cfg, MMaDAActor(model), execute_steps=execute_steps, temporal_ensemble=temporal_ensemble,
+            cfg, actor, execute_steps=execute_steps, temporal_ensemble=temporal_ensemble,
             log_keys=[IMAGE_KEY, SUCCESS_KEY, STEP_KEY],
         )  # fmt: skip
         env_dim = int(penv.env.action_spec.shape[-1])
@@ -256,7 +289,8 @@ def evaluate(
                 bar.set_postfix(success=f"{np.mean([r.success_once for r in results]):.2f}")
         seconds = time.perf_counter() - start
     finally:
-        model.sampler = saved_sampler
+        if mmada is not None:
+            mmada.sampler = saved_sampler
         if penv is not None:
             penv.env.close()
 
@@ -275,7 +309,7 @@ def evaluate(
     )  # fmt: skip
     if out_dir is not None:
         metrics.files = _write_outputs(Path(out_dir), metrics, frames if video else None,
-                                       (first_episode.decisions, first_episode.frames, model.config.chunk_size) if goal_grid else None)
+                                       (first_episode.decisions, first_episode.frames, actor.chunk_size) if goal_grid else None)
     return metrics
 
 
@@ -345,16 +379,18 @@ def add_parser(sub) -> None:
     """Register ``mmada-rl eval``."""
     p = sub.add_parser("eval", help="evaluate a saved policy on a ManiSkill3 task (success rates with 95%% CIs)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="directory saved by MMaDAModel.save, or a checkpoint directory with one under model/.")
+    p.add_argument("--checkpoint", required=True, help="directory saved by MMaDAModel.save or by a baseline policy's save "
+                   "(recipes/baselines), or a checkpoint directory with one under model/.")
     p.add_argument("--task", required=True, help="ManiSkill3 task id, e.g. PickCube-v1.")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes (default: %(default)s).")
     p.add_argument("--seed-offset", type=int, default=0, help=f"first env seed is {EVAL_SEED_BASE} + this (default: %(default)s).")
     p.add_argument("--execute-steps", type=int, default=None, help="actions executed per chunk before replanning, 1..K (default: K).")
     p.add_argument("--temporal-ensemble", action="store_true", help="replan every step and average overlapping chunks (ACT).")
-    p.add_argument("--num-denoise-steps", type=int, default=None, help="parallel decoding steps N (default: the model's).")
+    p.add_argument("--num-denoise-steps", type=int, default=None, help="decoding steps N per chunk: MMaDA's parallel refinement steps, "
+                   "a diffusion_policy baseline's DDIM steps (default: the policy's).")
     p.add_argument("--max-episode-steps", type=int, default=None, help="episode length (default: the task registry's).")
     p.add_argument("--control-mode", default="pd_ee_delta_pose", help="ManiSkill controller the policy acts in (default: %(default)s).")
-    p.add_argument("--image-size", type=int, default=None, help="camera image side; must match the model (default: the model's).")
+    p.add_argument("--image-size", type=int, default=None, help="camera image side; must match the policy (default: the policy's).")
     p.add_argument("--device", default="cpu", help="torch device of the model (default: %(default)s).")
     p.add_argument("--num-threads", type=int, default=1,
                    help="torch CPU threads; 1 leaves the cores to SAPIEN's CPU renderer (default: %(default)s).")

@@ -93,12 +93,14 @@ class DemoBuffer:
         self.path = Path(path)
         self.replay_buffer = replay_buffer
         self.metadata = metadata
+        self.instruction_lookup = InstructionLookup(metadata.instructions)
+        replay_buffer.append_transform(self.instruction_lookup)
 
     # -- construction ---------------------------------------------------------
     @staticmethod
     def _make_rb(path: Path, capacity: int, metadata: BufferMetadata) -> TensorDictReplayBuffer:
         storage = LazyMemmapStorage(capacity, scratch_dir=path / "storage", existsok=True)
-        return TensorDictReplayBuffer(storage=storage, transform=InstructionLookup(metadata.instructions))
+        return TensorDictReplayBuffer(storage=storage)
 
     @classmethod
     def create(cls, path: str | Path, metadata: BufferMetadata, capacity: int) -> DemoBuffer:
@@ -193,7 +195,7 @@ class DemoBuffer:
             )
         if instruction not in self.metadata.instructions:
             self.metadata.instructions.append(instruction)
-            self.replay_buffer._transform[-1].instructions = list(self.metadata.instructions)
+            self.instruction_lookup.instructions = list(self.metadata.instructions)
         episode_id = self.metadata.num_episodes
         data = episode.select(*self.transition_keys()).clone()
         data.set(EPISODE_KEY, torch.full((T,), episode_id, dtype=torch.int64))
@@ -245,7 +247,7 @@ class DemoBuffer:
         """Every stored episode as a ``[T]`` tensordict (instruction text included)."""
         for start, stop in self.episode_bounds():
             ep = self.storage[start:stop]
-            yield self.replay_buffer._transform(ep.clone() if isinstance(ep, TensorDict) else ep.to_tensordict())
+            yield self.instruction_lookup(ep.clone() if isinstance(ep, TensorDict) else ep.to_tensordict())
 
     def summary(self) -> str:
         """A few human-readable lines about the buffer."""

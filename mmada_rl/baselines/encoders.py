@@ -1,0 +1,145 @@
+"""The observation encoder shared by the baselines, and image augmentation for their training data.
+
+:class:`ObservationEncoder` turns a uint8 RGB image ``[B, 3, H, W]`` and the
+proprioceptive state ``[B, S]`` into one feature vector ``[B, F]``: a small
+strided CNN (GroupNorm instead of BatchNorm, as Diffusion Policy does, so the
+policy behaves the same in train and eval mode and with any batch size) and a
+state MLP, concatenated. Both baselines use it, trained end to end with their head.
+
+:class:`RandomShift` is DrQ's random-shift augmentation (pad by ``pad`` pixels
+with the border, crop back at a random offset), the small-image counterpart of
+Diffusion Policy's random crop. It is a replay-buffer transform: it changes the
+training windows only, never what the policy sees in the env.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.envs.transforms import Transform
+
+from mmada_rl.baselines.normalization import StateStandardizer
+from mmada_rl.keys import IMAGE_KEY
+
+__all__ = ["EncoderConfig", "ObservationEncoder", "RandomShift", "random_shift"]
+
+
+@dataclass
+class EncoderConfig:
+    """Sizes of :class:`ObservationEncoder`.
+
+    Attributes:
+        channels: output channels of each stride-2 3x3 convolution (an image side
+            of ``H`` leaves ``H / 2**len(channels)`` pixels).
+        image_features: size of the image embedding.
+        state_features: size of the state embedding.
+        norm_groups: GroupNorm groups (the largest divisor of each width up to this).
+    """
+
+    channels: tuple[int, ...] = (32, 64, 128, 128)
+    image_features: int = 128
+    state_features: int = 64
+    norm_groups: int = 8
+
+    def __post_init__(self) -> None:
+        self.channels = tuple(int(c) for c in self.channels)
+        if not self.channels or min(self.channels) < 1:
+            raise ValueError(f"channels must be a non-empty list of positive widths, got {list(self.channels)!r}.")
+        for name in ("image_features", "state_features", "norm_groups"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}.")
+
+    @property
+    def out_features(self) -> int:
+        return self.image_features + self.state_features
+
+
+class ObservationEncoder(nn.Module):
+    """Image CNN + state MLP -> features ``[B, image_features + state_features]``.
+
+    Args:
+        config: sizes.
+        image_size: side of the square input image (a multiple of ``2**len(channels)``).
+        state_dim: ``S``.
+        state_mean, state_std: state moments of the training data (default: identity).
+
+    Examples:
+        >>> enc = ObservationEncoder(EncoderConfig(channels=(8, 16)), image_size=64, state_dim=29)
+        >>> enc(torch.zeros(2, 3, 64, 64, dtype=torch.uint8), torch.zeros(2, 29)).shape
+        torch.Size([2, 192])
+    """
+
+    def __init__(self, config: EncoderConfig, *, image_size: int, state_dim: int,
+                 state_mean: torch.Tensor | None = None, state_std: torch.Tensor | None = None) -> None:
+        super().__init__()
+        stride = 2 ** len(config.channels)
+        if image_size % stride:
+            raise ValueError(f"image_size={image_size} is not a multiple of 2**len(channels)={stride}; "
+                             f"use fewer encoder channels or another image size.")
+        self.config, self.image_size = config, image_size
+        layers, width = [], 3
+        for out in config.channels:
+            layers += [nn.Conv2d(width, out, 3, stride=2, padding=1), nn.GroupNorm(math.gcd(out, config.norm_groups), out), nn.Mish()]
+            width = out
+        side = image_size // stride
+        self.cnn = nn.Sequential(*layers, nn.Flatten(), nn.Linear(width * side * side, config.image_features),
+                                 nn.LayerNorm(config.image_features), nn.Mish())
+        self.standardize = StateStandardizer(state_dim, state_mean, state_std)
+        self.state_mlp = nn.Sequential(nn.Linear(state_dim, config.state_features), nn.Mish(),
+                                       nn.Linear(config.state_features, config.state_features), nn.Mish())
+
+    @property
+    def out_features(self) -> int:
+        return self.config.out_features
+
+    def forward(self, image: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        """``image`` uint8 ``(B, 3, H, W)``, ``state`` ``(B, S)`` -> ``(B, F)``."""
+        if image.shape[-2:] != (self.image_size, self.image_size):
+            raise ValueError(f"observation images are {tuple(image.shape[-2:])} but the encoder was built for "
+                             f"{self.image_size}x{self.image_size}; use env image_size={self.image_size}.")
+        pixels = image.float() / 127.5 - 1.0  # (B, 3, H, W) in [-1, 1]
+        return torch.cat([self.cnn(pixels), self.state_mlp(self.standardize(state.float()))], -1)  # (B, F)
+
+
+def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Shift each image of ``[B, C, H, W]`` by up to ``pad`` pixels, filling with the border (same dtype)."""
+    if pad == 0:
+        return images
+    B, C, H, W = images.shape
+    padded = F.pad(images.float(), (pad, pad, pad, pad), mode="replicate")  # (B, C, H+2p, W+2p)
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, B, 1), generator=generator).to(images.device)
+    rows = (dy + torch.arange(H, device=images.device))[:, None, :, None]  # (B, 1, H, 1)
+    cols = (dx + torch.arange(W, device=images.device))[:, None, None, :]  # (B, 1, 1, W)
+    batch = torch.arange(B, device=images.device)[:, None, None, None]
+    channel = torch.arange(C, device=images.device)[None, :, None, None]
+    return padded[batch, channel, rows, cols].to(images.dtype)
+
+
+class RandomShift(Transform):
+    """Replay-buffer transform: :func:`random_shift` of ``("observation", "image")`` (uses torch's global RNG).
+
+    Args:
+        pad: largest shift in pixels (DrQ uses 4 at 84x84).
+        image_key: the images to shift, uint8 ``[B, 3, H, W]``.
+
+    Examples:
+        >>> rb = make_window_buffer(buffer, chunk_size=5, batch_size=32)
+        >>> rb.append_transform(RandomShift(4))
+    """
+
+    def __init__(self, pad: int = 4, image_key=IMAGE_KEY) -> None:
+        if not isinstance(pad, int) or pad < 0:
+            raise ValueError(f"pad must be an int >= 0 (pixels), got {pad!r}.")
+        super().__init__(in_keys=[image_key], out_keys=[image_key])
+        self.pad = pad
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        image = tensordict.get(self.in_keys[0])
+        flat = image.reshape(-1, *image.shape[-3:])
+        tensordict.set(self.out_keys[0], random_shift(flat, self.pad).reshape(image.shape))
+        return tensordict

@@ -1,0 +1,28 @@
+"""Opening the demonstration buffer a training recipe reads (collecting it first when needed)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from mmada_rl.data import DemoBuffer
+from mmada_rl.envs.maniskill import EnvConfig
+
+__all__ = ["open_demos"]
+
+
+def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, prefix: str = "") -> DemoBuffer:
+    """The buffer in ``path``, checked against ``env``; planner demonstrations are collected first
+    while it holds fewer than ``collect_episodes`` episodes (0: never collect).
+
+    Raises:
+        BufferMismatchError: the buffer's task, control mode, observation mode or
+            image size differs from ``env``'s (one sentence naming both values).
+        FileNotFoundError: no buffer at ``path`` and ``collect_episodes == 0``.
+    """
+    path = Path(path)
+    have = DemoBuffer.open(path).metadata.num_episodes if (path / "metadata.json").exists() else 0
+    if collect_episodes and have < collect_episodes:
+        from mmada_rl.data.collect import collect
+
+        print(f"{prefix}collecting {collect_episodes - have} planner demonstrations into {path}")
+        collect(path, env, episodes=collect_episodes)
+    return DemoBuffer.open(path, task=env.task, control_mode=env.control_mode, obs_mode="rgb", image_size=env.image_size)
