@@ -106,7 +106,7 @@ def add_parser(sub) -> None:
     p.add_argument("--data", required=True, help="demonstration buffer directory (mmada-rl collect)")
     p.add_argument("--out", required=True, help="output directory for tokenizers and report")
     p.add_argument("--action-type", default="vq", choices=["vq", "bins", "fsq"], help="policy action tokenizer (default: %(default)s)")
-    p.add_argument("--codebook-size", type=int, default=256, help="VQ codes per quantizer (default: %(default)s)")
+    p.add_argument("--codebook-size", type=int, default=1024, help="VQ codes per quantizer; 1024 x 4 tokens replayed 99%% as well as raw actions on PickCube and PushCube (benchmarks/results/tokenizers.md) (default: %(default)s)")
     p.add_argument("--tokens-per-action", type=int, default=4, help="VQ/FSQ residual quantizers = tokens per action (default: %(default)s)")
     p.add_argument("--action-steps", type=int, default=3000, help="action tokenizer training steps (default: %(default)s)")
     p.add_argument("--image-codebook-size", type=int, default=512, help="image VQ-VAE codes (default: %(default)s)")
