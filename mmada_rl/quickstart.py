@@ -71,9 +71,12 @@ def _report(out: Path, run_dir: Path, demos: Path, result, seconds: float, args:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
     from mmada_rl.evaluation import evaluate
     from mmada_rl.training import latest_checkpoint
 
+    torch.set_num_threads(1)  # more torch threads contend with the simulator on 2 cores
     start = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -65,6 +65,9 @@ def _run(args: argparse.Namespace) -> int:
     from mmada_rl.tokenizers.fit import fit_action_tokenizer
     from mmada_rl.tokenizers.report import save_loss_curves, save_reconstruction_grid
 
+    import torch
+
+    torch.set_num_threads(args.num_threads)
     buffer = DemoBuffer.open(args.data)
     out = Path(args.out)
     action = {"codebook_size": args.codebook_size, "tokens_per_action": args.tokens_per_action} if args.action_type == "vq" else {}
@@ -117,4 +120,5 @@ def add_parser(sub) -> None:
     p.add_argument("--baselines", default=True, action=argparse.BooleanOptionalAction, help="also fit and report the baselines (default: yes)")
     p.add_argument("--replay-episodes", type=int, default=None, help="demonstrations replayed for the closed-loop proof (default: all; 0: skip)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--num-threads", type=int, default=1, help="torch threads; more contend with the simulator on 2 cores (default: %(default)s)")
     p.set_defaults(func=_run)
