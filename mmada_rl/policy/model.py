@@ -18,6 +18,7 @@ denoiser configs, weights), so a checkpoint describes itself.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -33,6 +34,7 @@ from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.keys import ACTION_CHUNK_KEY, GOAL_IMAGE_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
 from mmada_rl.tokenizers import TextTokenizer, VQImageTokenizer, load_tokenizer
 from mmada_rl.tokenizers.action import ActionTokenizer
+from mmada_rl.tokenizers.normalize import ActionOutOfRangeWarning
 from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
 from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
 
@@ -193,7 +195,12 @@ class MMaDAModel(nn.Module):
         }
         if self.proprio_tokenizer is not None:
             state = td.get(STATE_KEY)
-            out["proprio_ids"] = self.proprio_tokenizer.encode(state).reshape(-1, self.layout.config.proprio_tokens)
+            with warnings.catch_warnings():
+                # states beyond the demonstrations' range are clipped to the edge bins at every step
+                # of a rollout; the normaliser still counts them (proprio_tokenizer.normalizer.num_out_of_range)
+                warnings.simplefilter("ignore", ActionOutOfRangeWarning)
+                proprio = self.proprio_tokenizer.encode(state)
+            out["proprio_ids"] = proprio.reshape(-1, self.layout.config.proprio_tokens)
         if batch and out["text_ids"].shape[0] != batch.numel():
             raise ValueError(f"{out['text_ids'].shape[0]} instructions for a batch of {tuple(batch)}.")
         return out
