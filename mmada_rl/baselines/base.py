@@ -109,10 +109,11 @@ class ChunkPolicy(VLAWrapperBase):
                          chunk_size=config.chunk_size, use_state=True,
                          return_vla_action_container=kwargs.pop("return_vla_action_container", False), **kwargs)
         self.config = config
-        stats = stats if stats is not None else NormalizationStats(None, None, None, None)
+        # no stats: identity maps, to be overwritten by load_state_dict (a loaded policy)
+        low, high, mean, std = stats if stats is not None else (None, None, None, None)
         self.encoder = ObservationEncoder(config.encoder, image_size=config.image_size, state_dim=config.state_dim,
-                                          state_mean=stats.state_mean, state_std=stats.state_std)
-        self.normalizer = ChunkNormalizer(config.action_dim, stats.action_min, stats.action_max)
+                                          state_mean=mean, state_std=std)
+        self.normalizer = ChunkNormalizer(config.action_dim, low, high)
         self.execute_steps = check_execute_steps(execute_steps, self.chunk_size)
         self.generator = generator
         self.num_denoise_steps = 1

@@ -3,8 +3,10 @@
 :class:`ObservationEncoder` turns a uint8 RGB image ``[B, 3, H, W]`` and the
 proprioceptive state ``[B, S]`` into one feature vector ``[B, F]``: a small
 strided CNN (GroupNorm instead of BatchNorm, as Diffusion Policy does, so the
-policy behaves the same in train and eval mode and with any batch size) and a
-state MLP, concatenated. Both baselines use it, trained end to end with their head.
+policy behaves the same in train and eval mode and with any batch size) pooled
+by a spatial softmax (Diffusion Policy's and robomimic's choice: the expected
+image coordinates of learned keypoints, which is what locating a cube needs) or
+flattened, and a state MLP, concatenated. Both baselines use it, trained end to end with their head.
 
 :class:`RandomShift` is DrQ's random-shift augmentation (pad by ``pad`` pixels
 with the border, crop back at a random offset), the small-image counterpart of
@@ -25,7 +27,10 @@ from torchrl.envs.transforms import Transform
 from mmada_rl.baselines.normalization import StateStandardizer
 from mmada_rl.keys import IMAGE_KEY
 
-__all__ = ["EncoderConfig", "ObservationEncoder", "RandomShift", "random_shift"]
+__all__ = ["EncoderConfig", "ObservationEncoder", "POOLS", "RandomShift", "SpatialSoftmax", "random_shift"]
+
+#: Accepted values of ``EncoderConfig.pool``.
+POOLS = ("spatial_softmax", "flatten")
 
 
 @dataclass
@@ -38,18 +43,25 @@ class EncoderConfig:
         image_features: size of the image embedding.
         state_features: size of the state embedding.
         norm_groups: GroupNorm groups (the largest divisor of each width up to this).
+        pool: ``"spatial_softmax"`` (``num_keypoints`` expected x-y positions) or
+            ``"flatten"`` (every cell of the last feature map) before the image embedding.
+        num_keypoints: keypoints of the spatial softmax.
     """
 
-    channels: tuple[int, ...] = (32, 64, 128, 128)
+    channels: tuple[int, ...] = (32, 64, 128)
     image_features: int = 128
     state_features: int = 64
     norm_groups: int = 8
+    pool: str = "spatial_softmax"
+    num_keypoints: int = 32
 
     def __post_init__(self) -> None:
         self.channels = tuple(int(c) for c in self.channels)
         if not self.channels or min(self.channels) < 1:
             raise ValueError(f"channels must be a non-empty list of positive widths, got {list(self.channels)!r}.")
-        for name in ("image_features", "state_features", "norm_groups"):
+        if self.pool not in POOLS:
+            raise ValueError(f"pool must be one of {POOLS}, got {self.pool!r}.")
+        for name in ("image_features", "state_features", "norm_groups", "num_keypoints"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}.")
@@ -87,7 +99,11 @@ class ObservationEncoder(nn.Module):
             layers += [nn.Conv2d(width, out, 3, stride=2, padding=1), nn.GroupNorm(math.gcd(out, config.norm_groups), out), nn.Mish()]
             width = out
         side = image_size // stride
-        self.cnn = nn.Sequential(*layers, nn.Flatten(), nn.Linear(width * side * side, config.image_features),
+        if config.pool == "spatial_softmax":
+            pool, pooled = SpatialSoftmax(width, config.num_keypoints, side, side), 2 * config.num_keypoints
+        else:
+            pool, pooled = nn.Flatten(), width * side * side
+        self.cnn = nn.Sequential(*layers, pool, nn.Linear(pooled, config.image_features),
                                  nn.LayerNorm(config.image_features), nn.Mish())
         self.standardize = StateStandardizer(state_dim, state_mean, state_std)
         self.state_mlp = nn.Sequential(nn.Linear(state_dim, config.state_features), nn.Mish(),
@@ -104,6 +120,26 @@ class ObservationEncoder(nn.Module):
                              f"{self.image_size}x{self.image_size}; use env image_size={self.image_size}.")
         pixels = image.float() / 127.5 - 1.0  # (B, 3, H, W) in [-1, 1]
         return torch.cat([self.cnn(pixels), self.state_mlp(self.standardize(state.float()))], -1)  # (B, F)
+
+
+class SpatialSoftmax(nn.Module):
+    """``[B, C, H, W]`` -> ``[B, 2 * num_keypoints]``: per keypoint map, the softmax-weighted mean (x, y) in ``[-1, 1]``.
+
+    Args:
+        in_channels: ``C``.
+        num_keypoints: keypoint maps (a 1x1 convolution of the input).
+        height, width: size of the input map.
+    """
+
+    def __init__(self, in_channels: int, num_keypoints: int, height: int, width: int) -> None:
+        super().__init__()
+        self.keypoints = nn.Conv2d(in_channels, num_keypoints, 1)
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height), torch.linspace(-1, 1, width), indexing="ij")
+        self.register_buffer("grid", torch.stack([xs.flatten(), ys.flatten()], -1), persistent=False)  # (H*W, 2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        attention = self.keypoints(x).flatten(2).softmax(-1)  # (B, N, H*W)
+        return (attention @ self.grid).flatten(1)  # (B, 2N)
 
 
 def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:

@@ -8,7 +8,6 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
 from mmada_rl.data import DemoBuffer, make_window_buffer
-from mmada_rl.data.collect import collect
 from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import ACTION_IS_PAD_KEY, SEQUENCE_KEY
@@ -16,6 +15,7 @@ from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers.from_buffer import FittedTokenizers, TokenizerFitConfig, fit_tokenizers
 from mmada_rl.training import make_optimizer, make_scheduler
+from mmada_rl.training.demos import open_demos
 
 
 def make_env_config(cfg: DictConfig) -> EnvConfig:
@@ -24,15 +24,7 @@ def make_env_config(cfg: DictConfig) -> EnvConfig:
 
 def make_demo_buffer(cfg: DictConfig) -> DemoBuffer:
     """The demonstration buffer of ``cfg.data.dir``; collected first when missing or short."""
-    env_cfg = make_env_config(cfg)
-    path = Path(cfg.data.dir)
-    want = int(cfg.data.collect_episodes)
-    have = DemoBuffer.open(path).metadata.num_episodes if (path / "metadata.json").exists() else 0
-    if want and have < want:
-        print(f"[pretrain] collecting {want - have} planner demonstrations into {path}")
-        collect(path, env_cfg, episodes=want)
-    return DemoBuffer.open(path, task=env_cfg.task, control_mode=env_cfg.control_mode, obs_mode="rgb",
-                           image_size=env_cfg.image_size)
+    return open_demos(cfg.data.dir, make_env_config(cfg), collect_episodes=int(cfg.data.collect_episodes), prefix="[pretrain] ")
 
 
 def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Tokenizers:

@@ -1,0 +1,275 @@
+"""Imitation baselines: BC (TorchRL BCLoss) and Diffusion Policy (TorchRL DiffusionBCLoss), their recipe and evaluation."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mmada_rl.baselines import (
+    ALGOS,
+    BCPolicy,
+    ChunkDiffusionBCLoss,
+    DiffusionPolicy,
+    DiffusionPolicyConfig,
+    EncoderConfig,
+    NormalizationStats,
+    ObservationEncoder,
+    RandomShift,
+    is_policy_dir,
+    load_policy,
+    make_bc_loss,
+    make_loss,
+    make_policy,
+)
+from mmada_rl.evaluation import evaluate, resolve_model_dir
+from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
+
+torch.set_num_threads(1)
+REPO = Path(__file__).resolve().parents[1]
+RECIPE = REPO / "recipes" / "baselines" / "imitation.py"
+K, A, S = 4, 7, 29
+TINY = {"chunk_size": K, "action_dim": A, "state_dim": S, "image_size": 64,
+        "encoder": {"channels": [8, 16, 16, 16], "image_features": 32, "state_features": 16}}
+TINY_HEADS = {"bc": {"hidden_sizes": [64]},
+              "diffusion_policy": {"num_train_steps": 50, "num_inference_steps": 5, "hidden_size": 64, "num_blocks": 2,
+                                   "time_embed_dim": 16}}
+STATS = NormalizationStats(
+    action_min=torch.tensor([-0.2, -0.3, -0.3, -0.1, -0.2, -1.0, -1.0]),
+    action_max=torch.tensor([0.2, 0.3, 0.4, 0.1, 0.2, 1.0, 1.0]),
+    state_mean=torch.zeros(S),
+    state_std=torch.ones(S),
+)
+
+
+def tiny_policy(algo: str, seed: int = 0, **kwargs):
+    torch.manual_seed(seed)
+    return make_policy(algo, {**TINY, **TINY_HEADS[algo]}, STATS, **kwargs)
+
+
+def window_batch(batch: int = 8, seed: int = 0) -> TensorDict:
+    """A fixed batch shaped like make_window_buffer's: the last two windows run past their episode's end."""
+    gen = torch.Generator().manual_seed(seed)
+    pad = torch.zeros(batch, K, dtype=torch.bool)
+    pad[-2:, 2:] = True
+    low, high = STATS.action_min, STATS.action_max
+    return TensorDict({
+        IMAGE_KEY: torch.randint(0, 256, (batch, 3, 64, 64), dtype=torch.uint8, generator=gen),
+        STATE_KEY: torch.randn(batch, S, generator=gen),
+        ACTION_CHUNK_KEY: low + (high - low) * torch.rand(batch, K, A, generator=gen),
+        ACTION_IS_PAD_KEY: pad,
+    }, batch_size=[batch])  # fmt: skip
+
+
+# -- the actor contract ------------------------------------------------------------
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+@pytest.mark.parametrize("batch", [(), (3,), (2, 2)])
+def test_policy_writes_the_chunk_and_its_first_actions(algo, batch):
+    policy = tiny_policy(algo, execute_steps=2)
+    assert policy.in_keys == [IMAGE_KEY, STATE_KEY]  # single-task: no instruction
+    assert policy.out_keys == [ACTION_CHUNK_KEY, ACTION_KEY]
+    td = TensorDict({IMAGE_KEY: torch.zeros(*batch, 3, 64, 64, dtype=torch.uint8), STATE_KEY: torch.zeros(*batch, S)}, batch_size=batch)
+    out = policy(td)
+    assert out.get(ACTION_CHUNK_KEY).shape == (*batch, K, A)
+    assert out.get(ACTION_KEY).shape == (*batch, 2, A)
+    torch.testing.assert_close(out.get(ACTION_KEY), out.get(ACTION_CHUNK_KEY)[..., :2, :])
+    assert policy.last_decode_seconds > 0
+    assert policy.get_new_version(execute_steps=K).execute_steps == K and policy.execute_steps == 2
+    with pytest.raises(ValueError, match=r"execute_steps must be an int in \[1, chunk_size=4\]"):
+        policy.get_new_version(execute_steps=K + 1)
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_saved_policy_describes_itself_and_reloads(algo, tmp_path):
+    policy = tiny_policy(algo)
+    policy.save(tmp_path / "model")
+    assert is_policy_dir(tmp_path / "model") and resolve_model_dir(tmp_path) == tmp_path / "model"
+    payload = json.loads((tmp_path / "model" / "policy.json").read_text())
+    assert payload["kind"] == algo and payload["config"]["chunk_size"] == K
+    loaded = load_policy(tmp_path / "model")
+    assert type(loaded) is type(policy) and loaded.config == policy.config
+    torch.testing.assert_close(loaded.normalizer.half_range, policy.normalizer.half_range)  # statistics travel with the weights
+    td = window_batch(2).select(IMAGE_KEY, STATE_KEY)
+    torch.testing.assert_close(loaded(td.clone()).get(ACTION_CHUNK_KEY), policy(td.clone()).get(ACTION_CHUNK_KEY))
+
+
+def test_bad_configs_fail_with_a_sentence():
+    with pytest.raises(ValueError, match="image_size=60 is not a multiple of 2\\*\\*len\\(channels\\)=16"):
+        make_policy("bc", {**TINY, "image_size": 60})
+    with pytest.raises(ValueError, match="num_inference_steps <= num_train_steps"):
+        DiffusionPolicyConfig(num_train_steps=10, num_inference_steps=20)
+    with pytest.raises(ValueError, match="pool must be one of"):
+        EncoderConfig(pool="mean")
+    with pytest.raises(ValueError, match="unknown baseline 'ppo'"):
+        make_policy("ppo", TINY)
+    with pytest.raises(ValueError, match="num_denoise_steps=3 does not apply"):
+        tiny_policy("bc").get_new_version(num_denoise_steps=3)
+    with pytest.raises(ValueError, match="num_inference_steps must lie in \\[1, num_steps=50\\]"):
+        tiny_policy("diffusion_policy").get_new_version(num_denoise_steps=51)
+
+
+# -- losses ---------------------------------------------------------------------------
+def test_bc_loss_is_torchrl_bcloss_and_ignores_padded_steps():
+    policy = tiny_policy("bc")
+    loss = make_bc_loss(policy)
+    batch = window_batch()
+    value = loss(batch.clone())["loss_bc"]
+    # the mean L1 error, in normalised units, over the unpadded elements only
+    with torch.no_grad():
+        pred = policy.normalizer.normalize(policy(batch.clone()).get(ACTION_CHUNK_KEY))
+    target = policy.normalizer.normalize(batch.get(ACTION_CHUNK_KEY))
+    keep = ~batch.get(ACTION_IS_PAD_KEY)
+    torch.testing.assert_close(value.detach(), (pred - target).abs()[keep].mean())
+    changed = batch.clone()
+    changed.get(ACTION_CHUNK_KEY)[changed.get(ACTION_IS_PAD_KEY)] += 100.0  # padded targets only
+    assert loss(changed)["loss_bc"].item() == pytest.approx(value.item(), rel=1e-6)
+    changed.get(ACTION_CHUNK_KEY)[0, 0] += 1.0  # a real step
+    assert loss(changed)["loss_bc"].item() > value.item() + 1e-3
+    assert batch.get(ACTION_CHUNK_KEY).equal(window_batch().get(ACTION_CHUNK_KEY))  # the loss leaves its input alone
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_loss_falls_on_a_fixed_batch_and_trains_the_encoder(algo):
+    policy = tiny_policy(algo)
+    loss = make_loss(policy)
+    assert isinstance(loss, ChunkDiffusionBCLoss if algo == "diffusion_policy" else type(make_bc_loss(policy)))
+    key = "loss_diffusion_bc" if algo == "diffusion_policy" else "loss_bc"
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    conv = policy.encoder.cnn[0].weight.detach().clone()
+    batch, history = window_batch(), []
+    torch.manual_seed(0)
+    for _ in range(80):  # the diffusion loss draws new timesteps and noise at every step: average over 10
+        value = loss(batch)[key]
+        optimizer.zero_grad()
+        value.backward()
+        optimizer.step()
+        history.append(value.item())
+    first, last = sum(history[:10]) / 10, sum(history[-10:]) / 10
+    assert last < 0.6 * first, history
+    assert not torch.equal(conv, policy.encoder.cnn[0].weight)  # gradients reach the image encoder
+
+
+def test_diffusion_sampler_stays_in_the_demonstrated_range():
+    policy = tiny_policy("diffusion_policy")
+    assert policy.module.alphas_cumprod[-1] < 1e-3  # the last training step is (almost) pure noise
+    assert policy.module.inference_timesteps(5) == [49, 37, 24, 12, 0]
+    td = window_batch(16).select(IMAGE_KEY, STATE_KEY)
+    low, high = STATS.action_min - 1e-5, STATS.action_max + 1e-5
+    greedy = policy(td.clone()).get(ACTION_CHUNK_KEY)
+    assert ((greedy >= low) & (greedy <= high)).all()
+    torch.testing.assert_close(policy(td.clone()).get(ACTION_CHUNK_KEY), greedy)  # deterministic by default
+    with set_exploration_type(ExplorationType.RANDOM):
+        a = policy(td.clone(), generator=torch.Generator().manual_seed(1)).get(ACTION_CHUNK_KEY)
+        b = policy(td.clone(), generator=torch.Generator().manual_seed(1)).get(ACTION_CHUNK_KEY)
+        c = policy.get_new_version(num_denoise_steps=2)(td.clone()).get(ACTION_CHUNK_KEY)
+    torch.testing.assert_close(a, b)
+    assert not torch.allclose(a, greedy)
+    for chunk in (a, c):
+        assert ((chunk >= low) & (chunk <= high)).all()
+
+
+@pytest.mark.parametrize("pool", ["spatial_softmax", "flatten"])
+def test_encoder_pools_to_one_feature_vector(pool):
+    encoder = ObservationEncoder(EncoderConfig(channels=(8, 16), pool=pool, num_keypoints=4, image_features=12, state_features=5),
+                                 image_size=64, state_dim=S)
+    batch = window_batch(3)
+    assert encoder(batch.get(IMAGE_KEY), batch.get(STATE_KEY)).shape == (3, 17)
+    if pool == "spatial_softmax":
+        keypoints = encoder.cnn[-4](encoder.cnn[:-4](batch.get(IMAGE_KEY).float()))  # (B, 2 * 4) expected x-y
+        assert keypoints.shape == (3, 8) and keypoints.abs().max() <= 1.0
+
+
+def test_random_shift_moves_images_by_at_most_pad_pixels():
+    torch.manual_seed(0)
+    image = torch.zeros(4, 3, 16, 16, dtype=torch.uint8)
+    image[:, :, 8, 8] = 255
+    shifted = RandomShift(2)(TensorDict({IMAGE_KEY: image.clone()}, [4])).get(IMAGE_KEY)
+    assert shifted.dtype == torch.uint8 and shifted.shape == image.shape
+    for img in shifted:
+        ys, xs = torch.nonzero(img[0], as_tuple=True)
+        assert len(ys) == 1 and abs(int(ys) - 8) <= 2 and abs(int(xs) - 8) <= 2
+
+
+# -- the recipe, as users run it --------------------------------------------------------
+def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(RECIPE), *map(str, overrides)], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+def common(run_dir, demos) -> list[str]:
+    return [f"run_dir={run_dir}", f"data.dir={demos}", "data.collect_episodes=0", "optim.total_steps=4", "checkpoint.interval=2",
+            "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1"]
+
+
+@pytest.fixture(scope="module")
+def toy_runs(pick_demos, tmp_path_factory) -> dict[str, Path]:
+    """Four toy steps of each algo, checkpoints at 2 and 4, a one-episode evaluation at the end."""
+    runs = {}
+    for algo in sorted(ALGOS):
+        run_dir = tmp_path_factory.mktemp(algo) / "run"
+        proc = run_recipe(f"algo={algo}", *common(run_dir, pick_demos), "eval.episodes=1", "eval.max_episode_steps=6")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        runs[algo] = run_dir
+    return runs
+
+
+@pytest.mark.parametrize("algo", sorted(ALGOS))
+def test_recipe_trains_logs_checkpoints_and_evaluates(toy_runs, algo):
+    run_dir = toy_runs[algo]
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["step_00000002", "step_00000004"]
+    ckpt = run_dir / "checkpoints" / "step_00000004"
+    assert (ckpt / "trainer.pt").exists() and (ckpt / "model" / "policy.safetensors").exists()
+    assert json.loads((ckpt / "model" / "policy.json").read_text())["kind"] == algo
+    assert json.loads((ckpt / "config.json").read_text())["algo"] == algo
+    history = json.loads((run_dir / "history.json").read_text())
+    key = "train/loss_diffusion_bc" if algo == "diffusion_policy" else "train/loss_bc"
+    assert [h["step"] for h in history] == [1, 2, 3, 4] and all(h[key] > 0 for h in history)
+    final = json.loads((run_dir / "final.json").read_text())
+    assert final["step"] == 4 and final["eval/episodes"] == 1 and 0.0 <= final["eval/success_once"] <= 1.0
+    assert final["eval/num_denoise_steps"] == (10 if algo == "diffusion_policy" else 1)
+    assert (run_dir / "logs" / "scalars" / "train" / f"{key.split('/')[1]}.csv").exists()  # TorchRL CSV logger
+
+
+def test_recipe_resumes_with_the_same_batches_and_noise(toy_runs, pick_demos, tmp_path):
+    original = toy_runs["diffusion_policy"]  # its loss draws timesteps and noise: the RNG state must come back
+    resumed = tmp_path / "resumed"
+    (resumed / "checkpoints").mkdir(parents=True)
+    shutil.copytree(original / "checkpoints" / "step_00000002", resumed / "checkpoints" / "step_00000002")
+    proc = run_recipe("algo=diffusion_policy", *common(resumed, pick_demos), "eval.episodes=0", "checkpoint.resume=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "resumed from" in proc.stdout and "at step 2" in proc.stdout
+    history = json.loads((resumed / "history.json").read_text())
+    assert [h["step"] for h in history] == [3, 4]
+    for a, b in zip(history, json.loads((original / "history.json").read_text())[2:]):
+        assert a["train/loss"] == pytest.approx(b["train/loss"], rel=1e-5)
+    weights = [load_file(str(run / "checkpoints" / "step_00000004" / "model" / "policy.safetensors")) for run in (resumed, original)]
+    for key in weights[1]:
+        torch.testing.assert_close(weights[0][key], weights[1][key], rtol=1e-5, atol=1e-6)
+
+
+def test_recipe_rejects_an_unknown_algo(pick_demos, tmp_path):
+    proc = run_recipe("algo=ppo", *common(tmp_path / "bad", pick_demos), "eval.episodes=0")
+    assert proc.returncode != 0 and "algo='ppo' is not a baseline" in proc.stderr
+
+
+# -- evaluation of a baseline ------------------------------------------------------------
+def test_evaluate_runs_a_saved_diffusion_policy_and_an_in_memory_bc_policy(toy_runs, tmp_path):
+    result = evaluate(toy_runs["diffusion_policy"] / "checkpoints" / "step_00000004", "PickCube-v1", 1, max_episode_steps=4,
+                      execute_steps=2, num_denoise_steps=2, out_dir=tmp_path, progress=False)
+    assert result.num_denoise_steps == 2 and result.execute_steps == 2
+    assert [r.steps for r in result.per_episode] == [4] and [len(r.decode_ms) for r in result.per_episode] == [2]
+    assert json.loads((tmp_path / "eval.json").read_text())["eval/num_denoise_steps"] == 2
+    bc = load_policy(toy_runs["bc"] / "checkpoints" / "step_00000004" / "model")
+    result = evaluate(bc, "PickCube-v1", 1, max_episode_steps=3, execute_steps=1, progress=False)
+    assert [len(r.decode_ms) for r in result.per_episode] == [3] and result.num_denoise_steps == 1
+    assert bc.execute_steps == bc.chunk_size  # evaluate left the policy as it was
+    with pytest.raises(ValueError, match="does not apply"):
+        evaluate(bc, "PickCube-v1", 1, num_denoise_steps=3)
+    with pytest.raises(ValueError, match=r"image_size=32 .* fitted on 64x64"):
+        evaluate(bc, "PickCube-v1", 1, image_size=32)
