@@ -100,3 +100,17 @@ def test_parallel_env_passes_spec_check():
         assert td[IMAGE_KEY].shape == (2, 2, 3, 64, 64)
     finally:
         env.close()
+
+
+def test_readme_environment_snippet():
+    from mmada_rl.envs import make_env as readme_make_env
+
+    env = readme_make_env("PickCube-v1", image_size=64, control_mode="pd_ee_delta_pose", reward="dense", num_workers=1)
+    try:
+        td = env.rollout(10)
+        assert td["observation", "image"].shape == (10, 3, 64, 64) and td["observation", "image"].dtype == torch.uint8
+        assert td["observation", "state"].shape == (10, 29)
+        assert td["language_instruction"][0] == "pick up the red cube and move it to the green goal"
+        assert td["next", "success"].dtype == torch.bool
+    finally:
+        env.close()

@@ -1,0 +1,16 @@
+"""ManiSkill3 tasks as TorchRL environments (SAPIEN CPU physics, CPU Vulkan rendering)."""
+from mmada_rl.envs.maniskill import EnvConfig, make_env, make_gym_env
+from mmada_rl.envs.tasks import SUPPORTED_TASKS, TASKS, TaskSpec, UnknownTaskError, task_spec
+from mmada_rl.envs.vulkan import VulkanUnavailableError
+
+__all__ = [
+    "EnvConfig",
+    "SUPPORTED_TASKS",
+    "TASKS",
+    "TaskSpec",
+    "UnknownTaskError",
+    "VulkanUnavailableError",
+    "make_env",
+    "make_gym_env",
+    "task_spec",
+]
