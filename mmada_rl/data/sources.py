@@ -11,7 +11,6 @@ from typing import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
-import torch
 from tensordict import TensorDictBase
 
 from mmada_rl.data.recording import StepRecorder

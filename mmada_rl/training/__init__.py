@@ -1,5 +1,21 @@
 """Training utilities shared by the recipes: checkpoints, schedules, loggers."""
-from mmada_rl.training.checkpoint import Checkpoint, latest_checkpoint, load_checkpoint, save_checkpoint
+from mmada_rl.training.checkpoint import (
+    Checkpoint,
+    latest_checkpoint,
+    load_checkpoint,
+    make_logger,
+    resume_training,
+    save_checkpoint,
+)
 from mmada_rl.training.optim import make_optimizer, make_scheduler
 
-__all__ = ["Checkpoint", "latest_checkpoint", "load_checkpoint", "make_optimizer", "make_scheduler", "save_checkpoint"]
+__all__ = [
+    "Checkpoint",
+    "latest_checkpoint",
+    "load_checkpoint",
+    "make_logger",
+    "make_optimizer",
+    "make_scheduler",
+    "resume_training",
+    "save_checkpoint",
+]

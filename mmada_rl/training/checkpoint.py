@@ -105,3 +105,36 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     state = torch.load(path / TRAINER_FILE, weights_only=False)
     config = json.loads((path / CONFIG_FILE).read_text()) if (path / CONFIG_FILE).exists() else {}
     return Checkpoint(path, int(state["step"]), state, config)
+
+
+def resume_training(resume: bool | str | Path | None, run_dir: str | Path, *, load_weights, optimizer, scheduler=None,
+                    generators: dict[str, torch.Generator] | None = None) -> Checkpoint | None:
+    """Restore weights, optimizer, scheduler and RNG states for ``checkpoint.resume``-style settings.
+
+    Args:
+        resume: falsy for a fresh run, ``True`` for the newest checkpoint in ``run_dir``, or a checkpoint path.
+        load_weights: called with the checkpoint's model directory. It runs before the RNG
+            states are restored, so building modules while loading does not shift them.
+
+    Returns:
+        the loaded :class:`Checkpoint` (``step`` is the step to continue from), or ``None`` for a fresh run.
+    """
+    if not resume:
+        return None
+    path = latest_checkpoint(run_dir) if resume is True else Path(resume)
+    if path is None:
+        raise FileNotFoundError(f"checkpoint.resume=true but {Path(run_dir) / 'checkpoints'} holds no checkpoint.")
+    ckpt = load_checkpoint(path)
+    load_weights(ckpt.model_dir)
+    optimizer.load_state_dict(ckpt.trainer_state["optimizer"])
+    if scheduler is not None and ckpt.trainer_state.get("scheduler") is not None:
+        scheduler.load_state_dict(ckpt.trainer_state["scheduler"])
+    restore_rng_state(ckpt.trainer_state["rng"], generators)
+    return ckpt
+
+
+def make_logger(backend: str, run_dir: str | Path):
+    """A TorchRL logger (``csv``, ``tensorboard``, ``wandb``) writing under ``run_dir/logs``."""
+    from torchrl.record.loggers import get_logger
+
+    return get_logger(backend, logger_name=str(run_dir), experiment_name="logs")

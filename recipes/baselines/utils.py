@@ -9,8 +9,8 @@ from mmada_rl import baselines
 from mmada_rl.baselines import ChunkPolicy, NormalizationStats, RandomShift
 from mmada_rl.data import DemoBuffer, make_window_buffer
 from mmada_rl.envs.maniskill import EnvConfig
-from mmada_rl.training import latest_checkpoint, load_checkpoint, make_optimizer, make_scheduler
-from mmada_rl.training.checkpoint import restore_rng_state
+from mmada_rl import training
+from mmada_rl.training import make_optimizer, make_scheduler
 from mmada_rl.training.demos import open_demos
 
 PREFIX = "[imitation]"
@@ -63,27 +63,21 @@ def make_optim(cfg: DictConfig, policy: ChunkPolicy):
 
 
 def make_logger(cfg: DictConfig, run_dir: Path):
-    """A TorchRL logger writing under ``run_dir/logs``."""
-    from torchrl.record.loggers import get_logger
-
-    return get_logger(cfg.logger.backend, logger_name=str(run_dir), experiment_name="logs")
+    return training.make_logger(cfg.logger.backend, run_dir)
 
 
 def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, scheduler, generators: dict) -> int:
     """Restore weights, optimizer, scheduler and RNG states from ``checkpoint.resume``; returns the step (0: fresh run)."""
-    if not cfg.checkpoint.resume:
+    def load_weights(model_dir: Path) -> None:
+        saved = baselines.load_policy(model_dir)
+        if saved.kind != policy.kind:
+            raise ValueError(f"{model_dir} holds a {saved.kind} policy but algo={policy.kind}; resume with algo={saved.kind}.")
+        policy.load_state_dict(saved.state_dict())
+
+    ckpt = training.resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer,
+                                    scheduler=scheduler, generators=generators)
+    if ckpt is None:
         return 0
-    path = latest_checkpoint(run_dir) if cfg.checkpoint.resume is True else Path(cfg.checkpoint.resume)
-    if path is None:
-        raise FileNotFoundError(f"checkpoint.resume=true but {run_dir}/checkpoints holds no checkpoint.")
-    ckpt = load_checkpoint(path)
-    saved = baselines.load_policy(ckpt.model_dir)
-    if saved.kind != policy.kind:
-        raise ValueError(f"{ckpt.path} holds a {saved.kind} policy but algo={policy.kind}; resume with algo={saved.kind}.")
-    policy.load_state_dict(saved.state_dict())
-    optimizer.load_state_dict(ckpt.trainer_state["optimizer"])
-    scheduler.load_state_dict(ckpt.trainer_state["scheduler"])
-    restore_rng_state(ckpt.trainer_state["rng"], generators)
     print(f"{PREFIX} resumed from {ckpt.path} at step {ckpt.step}")
     return ckpt.step
 

@@ -20,8 +20,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from mmada_rl.training import latest_checkpoint, load_checkpoint, save_checkpoint
-from mmada_rl.training.checkpoint import restore_rng_state
+from mmada_rl.training import resume_training, save_checkpoint
 from utils import (
     loss_inputs,
     make_data,
@@ -63,15 +62,12 @@ def main(cfg: DictConfig) -> None:
     generators = {"sampler": data._rng}  # the window sampler's generator
 
     start = 0
-    if cfg.checkpoint.resume:
-        path = latest_checkpoint(run_dir) if cfg.checkpoint.resume is True else Path(cfg.checkpoint.resume)
-        if path is None:
-            raise FileNotFoundError(f"checkpoint.resume=true but {run_dir}/checkpoints holds no checkpoint.")
-        ckpt = load_checkpoint(path)
-        model.denoiser.load_state_dict(type(model).load(ckpt.model_dir).denoiser.state_dict())
-        optimizer.load_state_dict(ckpt.trainer_state["optimizer"])
-        scheduler.load_state_dict(ckpt.trainer_state["scheduler"])
-        restore_rng_state(ckpt.trainer_state["rng"], generators)
+    def load_weights(model_dir: Path) -> None:
+        model.denoiser.load_state_dict(type(model).load(model_dir).denoiser.state_dict())
+
+    ckpt = resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer,
+                           scheduler=scheduler, generators=generators)
+    if ckpt is not None:
         start = ckpt.step
         print(f"[pretrain] resumed from {ckpt.path} at step {start}")
     params = sum(p.numel() for p in model.denoiser.parameters())

@@ -14,6 +14,7 @@ from mmada_rl.keys import ACTION_IS_PAD_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers.from_buffer import FittedTokenizers, TokenizerFitConfig, fit_tokenizers
+from mmada_rl import training
 from mmada_rl.training import make_optimizer, make_scheduler
 from mmada_rl.training.demos import open_demos
 
@@ -81,10 +82,7 @@ def make_optim(cfg: DictConfig, model: MMaDAModel):
 
 
 def make_logger(cfg: DictConfig, run_dir: Path):
-    """A TorchRL logger writing under ``run_dir/logs``."""
-    from torchrl.record.loggers import get_logger
-
-    return get_logger(cfg.logger.backend, logger_name=str(run_dir), experiment_name="logs")
+    return training.make_logger(cfg.logger.backend, run_dir)
 
 
 def loss_inputs(model: MMaDAModel, batch: TensorDict) -> TensorDict:
