@@ -230,7 +230,10 @@ def test_interrupted_collection_is_loadable_and_resumes(tmp_path, sig):
     total = 10  # enough that the signal lands while the collector is still working
     cmd = [sys.executable, "-m", "mmada_rl.cli", "collect", "--task", "PickCube-v1", "--episodes", str(total),
            "--out", str(out), "--obs-mode", "state"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # a shell that starts jobs in the background hands them SIGINT ignored, and Python then keeps it
+    # ignored; restore the default so Ctrl-C behaves as in a terminal
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     _wait_for_episodes(out, 1, proc)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
