@@ -33,13 +33,11 @@ from typing import ClassVar
 import torch
 from safetensors.torch import load_file, save_file
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import InteractionType
-from tensordict.nn.probabilistic import interaction_type
 from torchrl.modules.vla import VLAWrapperBase
 
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
 from mmada_rl.baselines.normalization import ChunkNormalizer, NormalizationStats
-from mmada_rl.policy.actor import check_execute_steps
+from mmada_rl.policy.actor import ChunkExecutionMixin, check_execute_steps
 
 __all__ = ["POLICY_CONFIG", "POLICY_WEIGHTS", "ChunkPolicy", "ChunkPolicyConfig"]
 
@@ -78,7 +76,7 @@ class ChunkPolicyConfig:
         return asdict(self)
 
 
-class ChunkPolicy(VLAWrapperBase):
+class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
     """Base actor of the baselines (see the module docstring for its keys).
 
     Args:
@@ -130,20 +128,7 @@ class ChunkPolicy(VLAWrapperBase):
         self.in_keys = [key for key in self.in_keys if key != keys.instruction]  # single-task: no language
         self.out_keys = [*self.out_keys, keys.action]
 
-    def get_new_version(self, **kwargs) -> ChunkPolicy:
-        """A shallow copy sharing the weights, with other runtime settings (``execute_steps``, ``num_denoise_steps``)."""
-        if "execute_steps" in kwargs:
-            kwargs["execute_steps"] = check_execute_steps(kwargs["execute_steps"], self.chunk_size)
-        return super().get_new_version(**kwargs)
-
     # -- inference --------------------------------------------------------------
-    def is_greedy(self) -> bool:
-        """Whether the current interaction type (or the default one) asks for deterministic inference."""
-        current = interaction_type()
-        if current is None:
-            current = self.default_interaction_type
-        return current != InteractionType.RANDOM
-
     def features(self, tensordict: TensorDictBase) -> torch.Tensor:
         """Encoder features ``[B, F]`` of the observations of ``tensordict`` (batch ``[*B]`` flattened)."""
         image, state = self._get_image(tensordict), self._get_state(tensordict)

@@ -37,7 +37,7 @@ from mmada_rl.diffusion.path import path_log_prob
 from mmada_rl.keys import IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY, VLA_ACTION_KEY
 from mmada_rl.policy.model import MMaDAModel
 
-__all__ = ["DECODING_PATH_KEY", "MMaDAActor", "PREDICTED_GOAL_IMAGE_KEY", "check_execute_steps"]
+__all__ = ["ChunkExecutionMixin", "DECODING_PATH_KEY", "MMaDAActor", "PREDICTED_GOAL_IMAGE_KEY", "check_execute_steps"]
 
 #: The goal image ``o_{t+K}`` the policy predicts with its chunk, uint8 ``[*B, 3, H, W]``.
 PREDICTED_GOAL_IMAGE_KEY = (VLA_ACTION_KEY, "goal_image")
@@ -57,7 +57,25 @@ def check_execute_steps(execute_steps: int | None, chunk_size: int) -> int:
     return execute_steps
 
 
-class MMaDAActor(VLAWrapperBase):
+class ChunkExecutionMixin:
+    """What every chunk policy shares on top of ``VLAWrapperBase``: the interaction-type
+    readout and copies with other runtime settings (``execute_steps`` checked)."""
+
+    def get_new_version(self, **kwargs):
+        """A shallow copy sharing the weights, with other runtime settings (e.g. ``execute_steps=1``)."""
+        if "execute_steps" in kwargs:
+            kwargs["execute_steps"] = check_execute_steps(kwargs["execute_steps"], self.chunk_size)
+        return super().get_new_version(**kwargs)
+
+    def is_greedy(self) -> bool:
+        """Whether the current interaction type (or the default one) asks for deterministic inference."""
+        current = interaction_type()
+        if current is None:
+            current = self.default_interaction_type
+        return current != InteractionType.RANDOM
+
+
+class MMaDAActor(ChunkExecutionMixin, VLAWrapperBase):
     """TorchRL actor around an :class:`~mmada_rl.policy.model.MMaDAModel`.
 
     Decoding is greedy under ``set_exploration_type(ExplorationType.DETERMINISTIC)``
@@ -163,20 +181,7 @@ class MMaDAActor(VLAWrapperBase):
             self._update_keys()
         return self
 
-    def get_new_version(self, **kwargs) -> MMaDAActor:
-        """A shallow copy sharing the model, with other runtime settings (e.g. ``execute_steps=1``)."""
-        if "execute_steps" in kwargs:
-            kwargs["execute_steps"] = check_execute_steps(kwargs["execute_steps"], self.chunk_size)
-        return super().get_new_version(**kwargs)
-
     # -- decoding -------------------------------------------------------------
-    def is_greedy(self) -> bool:
-        """Whether the current interaction type (or the default one) asks for greedy decoding."""
-        current = interaction_type()
-        if current is None:
-            current = self.default_interaction_type
-        return current != InteractionType.RANDOM
-
     def _observation(self, tensordict: TensorDictBase) -> TensorDict:
         """The inputs under the canonical keys ``model.act`` reads, batch ``[B]``, on the model's device."""
         device = next(self.model.denoiser.parameters()).device
