@@ -32,14 +32,14 @@ from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.keys import ACTION_CHUNK_KEY, GOAL_IMAGE_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
-from mmada_rl.tokenizers import TextTokenizer, VQImageTokenizer, load_tokenizer
-from mmada_rl.tokenizers.action import ActionTokenizer
+from mmada_rl.tokenizers.bundle import Tokenizers
 from mmada_rl.tokenizers.normalize import ActionOutOfRangeWarning
 from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
 from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
 
 MODEL_CONFIG = "model.json"
 MODEL_WEIGHTS = "denoiser.safetensors"
+TOKENIZERS_DIR = "tokenizers"
 
 
 @dataclass
@@ -77,15 +77,6 @@ class MMaDAConfig:
 
     def sampler_config(self) -> SamplerConfig:
         return SamplerConfig(**self.sampler)
-
-
-class Tokenizers(NamedTuple):
-    """The frozen tokenizers of a policy."""
-
-    text: TextTokenizer
-    image: VQImageTokenizer
-    action: ActionTokenizer
-    proprio: ActionTokenizer | None = None
 
 
 class PolicyOutput(NamedTuple):
@@ -243,10 +234,9 @@ class MMaDAModel(nn.Module):
         """Write the whole policy into ``directory``: tokenizers, configs, denoiser weights."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        names = {"text": self.text_tokenizer, "image": self.image_tokenizer, "action": self.action_tokenizer, "proprio": self.proprio_tokenizer}
-        for name, tok in names.items():
-            if tok is not None:
-                tok.save(directory / f"tokenizer_{name}")
+        Tokenizers(self.text_tokenizer, self.image_tokenizer, self.action_tokenizer, self.proprio_tokenizer).save(
+            directory / TOKENIZERS_DIR
+        )
         payload = {
             "config": asdict(self.config),
             "vocabulary": self.vocab.to_dict(),
@@ -268,13 +258,6 @@ class MMaDAModel(nn.Module):
             raise FileNotFoundError(f"{directory} holds no MMaDA policy ({MODEL_CONFIG} missing).")
         payload = json.loads((directory / MODEL_CONFIG).read_text())
         config = MMaDAConfig(**payload["config"])
-        proprio = directory / "tokenizer_proprio"
-        tokenizers = Tokenizers(
-            text=load_tokenizer(directory / "tokenizer_text"),
-            image=load_tokenizer(directory / "tokenizer_image"),
-            action=load_tokenizer(directory / "tokenizer_action"),
-            proprio=load_tokenizer(proprio) if proprio.exists() else None,
-        )
-        model = cls(config, tokenizers)
+        model = cls(config, Tokenizers.load(directory / TOKENIZERS_DIR))
         model.denoiser.load_state_dict(load_file(str(directory / MODEL_WEIGHTS)))
         return model.to(device)

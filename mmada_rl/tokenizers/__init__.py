@@ -15,6 +15,7 @@ from mmada_rl.tokenizers.action_vq import VQActionTokenizer, VQActionTokenizerCo
 from mmada_rl.tokenizers.fit import FitResult, count_dead_code_restarts, fit_action_tokenizer, fit_image_tokenizer
 from mmada_rl.tokenizers.image import ImageReconstruction, VQImageTokenizer, VQImageTokenizerConfig
 from mmada_rl.tokenizers.io import load_tokenizer, save_tokenizer
+from mmada_rl.tokenizers.bundle import Tokenizers
 from mmada_rl.tokenizers.normalize import ActionNormalizer, ActionOutOfRangeWarning
 from mmada_rl.tokenizers.text import PAD_ID, UNK_ID, TextEncoding, TextTokenizer, TextTokenizerConfig
 
@@ -42,6 +43,7 @@ __all__ = [
     "fit_action_tokenizer",
     "fit_image_tokenizer",
     "count_dead_code_restarts",
+    "Tokenizers",
     "load_tokenizer",
     "save_tokenizer",
 ]

@@ -16,7 +16,7 @@ from mmada_rl.tokenizers.action_fsq import FSQActionTokenizer, FSQActionTokenize
 from mmada_rl.tokenizers.action_vq import VQActionTokenizer, VQActionTokenizerConfig
 from mmada_rl.tokenizers.fit import FitResult, fit_action_tokenizer, fit_image_tokenizer
 from mmada_rl.tokenizers.image import VQImageTokenizer, VQImageTokenizerConfig
-from mmada_rl.tokenizers.io import load_tokenizer
+from mmada_rl.tokenizers.bundle import Tokenizers
 from mmada_rl.tokenizers.text import TextTokenizer, TextTokenizerConfig
 
 #: action tokenizer kinds: the paper's EMA codebook and the two baselines
@@ -69,28 +69,16 @@ class FittedTokenizers:
     proprio: UniformBinActionTokenizer | None
     fits: dict[str, FitResult] = field(default_factory=dict)
 
+    @property
+    def tokenizers(self) -> Tokenizers:
+        return Tokenizers(self.text, self.image, self.action, self.proprio)
+
     def save(self, directory: str | Path) -> Path:
-        directory = Path(directory)
-        for name in ("text", "image", "action", "proprio"):
-            tok = getattr(self, name)
-            if tok is not None:
-                tok.save(directory / name)
-        return directory
+        return self.tokenizers.save(directory)
 
     @classmethod
     def load(cls, directory: str | Path) -> FittedTokenizers:
-        directory = Path(directory)
-        missing = [n for n in ("text", "image", "action") if not (directory / n).exists()]
-        if missing:
-            raise FileNotFoundError(f"{directory} holds no fitted tokenizers ({', '.join(missing)} missing); "
-                                    "run `mmada-rl fit-tokenizers --data DIR --out DIR`.")
-        proprio = directory / "proprio"
-        return cls(
-            text=load_tokenizer(directory / "text"),
-            image=load_tokenizer(directory / "image"),
-            action=load_tokenizer(directory / "action"),
-            proprio=load_tokenizer(proprio) if proprio.exists() else None,
-        )
+        return cls(*Tokenizers.load(directory))
 
 
 def make_action_tokenizer(kind: str, action_dim: int, **fields) -> torch.nn.Module:

@@ -13,7 +13,7 @@ from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import ACTION_IS_PAD_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
-from mmada_rl.tokenizers.from_buffer import FittedTokenizers, TokenizerFitConfig, fit_tokenizers
+from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
 from mmada_rl.training import make_optimizer, make_scheduler
 from mmada_rl.training.demos import open_demos
@@ -39,11 +39,11 @@ def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Token
             fit.action["hidden_sizes"] = tuple(fit.action.get("hidden_sizes", (256, 256)))
             fitted = fit_tokenizers(buffer, fit)
             fitted.save(directory)
-    fitted = FittedTokenizers.load(directory)
-    if fitted.image.config.image_size != buffer.metadata.image_size:
-        raise ValueError(f"the image tokenizer in {directory} was fitted on {fitted.image.config.image_size}px images "
+    tokenizers = Tokenizers.load(directory)
+    if tokenizers.image.config.image_size != buffer.metadata.image_size:
+        raise ValueError(f"the image tokenizer in {directory} was fitted on {tokenizers.image.config.image_size}px images "
                          f"but the buffer holds {buffer.metadata.image_size}px ones; refit or use matching env.image_size.")
-    return Tokenizers(fitted.text, fitted.image, fitted.action, fitted.proprio)
+    return tokenizers
 
 
 def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
