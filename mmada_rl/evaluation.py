@@ -81,14 +81,20 @@ def wilson_interval(successes: int, trials: int, z: float = _Z95) -> Interval:
 
 
 def resolve_model_dir(path: str | Path) -> Path:
-    """The directory holding ``model.json`` (or a baseline's ``policy.json``): ``path`` itself or ``path/model``."""
+    """The directory holding ``model.json`` (or a baseline's ``policy.json``): ``path`` itself, ``path/model``,
+    or, for a training run directory, its newest checkpoint's ``model``."""
+    from mmada_rl.training import latest_checkpoint
+
     path = Path(path)
-    for candidate in (path, path / "model"):
+    newest = latest_checkpoint(path)
+    candidates = [path, path / "model"] + ([newest / "model"] if newest is not None else [])
+    for candidate in candidates:
         if (candidate / MODEL_CONFIG).is_file() or is_policy_dir(candidate):
             return candidate
     raise FileNotFoundError(
         f"no MMaDA policy at {path}: expected {path / MODEL_CONFIG} or {path / 'model' / MODEL_CONFIG} "
-        "(a directory written by MMaDAModel.save, or a checkpoint directory holding one under model/), "
+        "(a directory written by MMaDAModel.save, a checkpoint directory holding one under model/, or a run "
+        "directory with checkpoints/), "
         f"or a baseline's {POLICY_CONFIG} there."
     )
 
@@ -165,14 +171,14 @@ def _image_size(actor) -> int | None:
     return getattr(actor, "image_size", None)
 
 
-def _env_config(policy_size: int | None, task: str, image_size: int | None, **kwargs) -> EnvConfig:
+def _env_config(policy_size: int | None, task: str, image_size: int | None, obs_mode: str = "rgb", **kwargs) -> EnvConfig:
     if image_size is not None and policy_size is not None and image_size != policy_size:
         raise ValueError(
             f"env image_size={image_size} but the policy's image tokenizer / encoder was fitted on "
             f"{policy_size}x{policy_size} images; evaluate with image_size={policy_size}."
         )
     size = policy_size or image_size
-    return EnvConfig(task=task, obs_mode="rgb", ignore_terminations=True, **({"image_size": size} if size else {}), **kwargs)
+    return EnvConfig(task=task, obs_mode=obs_mode, ignore_terminations=True, **({"image_size": size} if size else {}), **kwargs)
 
 
 class _Rollout(NamedTuple):
@@ -198,7 +204,8 @@ def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int) -> _Rollout:
     success = [bool(s.get(SUCCESS_KEY)) for s in steps[1:]]  # after each action
     first = success.index(True) + 1 if any(success) else len(success)
     result = EpisodeResult(seed, any(success), bool(success and success[-1]), first, len(success), decode_ms)
-    return _Rollout(result, decisions, torch.stack([s.get(IMAGE_KEY) for s in steps]))
+    frames = torch.stack([s.get(IMAGE_KEY) for s in steps]) if IMAGE_KEY in steps[0].keys(True) else torch.empty(0)
+    return _Rollout(result, decisions, frames)  # no frames for a state-observation policy
 
 
 def evaluate(
@@ -253,7 +260,8 @@ def evaluate(
     EnvConfig(task=task)  # an unknown task fails before the model loads
     loaded = _load(model, device)
     actor = MMaDAActor(loaded) if isinstance(loaded, MMaDAModel) else loaded
-    cfg = _env_config(_image_size(actor), task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
+    cfg = _env_config(_image_size(actor), task, image_size, obs_mode=getattr(actor, "obs_mode", "rgb"),  # "state": an RL reference
+                      control_mode=control_mode, max_episode_steps=max_episode_steps)
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
     saved_sampler, penv = mmada.sampler if mmada is not None else None, None
     try:

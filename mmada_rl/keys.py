@@ -42,6 +42,10 @@ __all__ = [
     "INSTRUCTION_TOKENS_KEY",
     "SEQUENCE_KEY",
     "NOISE_LEVEL_KEY",
+    "ADVANTAGE_KEY",
+    "VALUE_TARGET_KEY",
+    "IS_DEMO_KEY",
+    "GROUP_KEY",
 ]
 
 #: Future observation ``o_{t+K}`` that the policy predicts with the chunk, uint8 ``[*B, 3, H, W]``.
@@ -71,3 +75,12 @@ INSTRUCTION_TOKENS_KEY = "instruction_tokens"
 SEQUENCE_KEY = ("sequence", "ids")
 #: Noise level (masking ratio) of each sample in the forward process, float ``[*B]``.
 NOISE_LEVEL_KEY = ("sequence", "noise_level")
+# -- reinforcement learning ---------------------------------------------------
+#: Advantage of a decision (one executed chunk), float ``[*B]`` (TorchRL's default name).
+ADVANTAGE_KEY = "advantage"
+#: Return target of the value function for a decision, float ``[*B, 1]`` (TorchRL's default name).
+VALUE_TARGET_KEY = "value_target"
+#: True for demonstration samples in a mixed demo/online batch, bool ``[*B]``.
+IS_DEMO_KEY = "is_demo"
+#: Initial-state group of a decision (its episode's reset seed), int64 ``[*B, 1]``.
+GROUP_KEY = ("next", "episode_seed")

@@ -50,3 +50,18 @@ def pick_demos(tmp_path_factory) -> Path:
     result = collect(out, EnvConfig(task="PickCube-v1"), episodes=2, progress=False)
     assert result.new_episodes == 2
     return out
+
+
+@pytest.fixture(scope="session")
+def toy_pretrain_run(pick_demos, tmp_path_factory) -> Path:
+    """The pretraining recipe's toy config on ``pick_demos``: six steps, checkpoints at 3 and 6,
+    a one-episode evaluation at the end (a tiny pretrained policy for the fine-tuning tests too)."""
+    run_dir = tmp_path_factory.mktemp("pretrain") / "run"
+    proc = subprocess.run(
+        [sys.executable, str(REPO_ROOT / "recipes" / "pretrain" / "pretrain.py"), f"run_dir={run_dir}",
+         f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6", "checkpoint.interval=3",
+         "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1", "eval.episodes=1", "eval.max_episode_steps=10"],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return run_dir

@@ -24,14 +24,9 @@ def weights(ckpt: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def toy_run(pick_demos, tmp_path_factory) -> Path:
-    """Six toy steps with checkpoints at 3 and 6 and a one-episode evaluation at the end."""
-    run_dir = tmp_path_factory.mktemp("pretrain") / "run"
-    proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6",
-                      "checkpoint.interval=3", "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1",
-                      "eval.episodes=1", "eval.max_episode_steps=10")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return run_dir
+def toy_run(toy_pretrain_run) -> Path:
+    """Six toy steps with checkpoints at 3 and 6 and a one-episode evaluation at the end (conftest)."""
+    return toy_pretrain_run
 
 
 def test_toy_recipe_trains_logs_checkpoints_and_evaluates(toy_run):

@@ -13,18 +13,18 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import gymnasium as gym
 import numpy as np
 import torch
-from torchrl.data import Binary
-from torchrl.envs import Compose, GymWrapper, ParallelEnv, RenameTransform, StepCounter, TransformedEnv
+from torchrl.data import Binary, Unbounded
+from torchrl.envs import Compose, GymWrapper, ParallelEnv, RenameTransform, StepCounter, Transform, TransformedEnv
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from mmada_rl.envs.instruction import InstructionTransform
 from mmada_rl.envs.tasks import task_spec
-from mmada_rl.keys import IMAGE_KEY, STATE_KEY
+from mmada_rl.keys import GROUP_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.envs.vulkan import VulkanUnavailableError, is_render_device_error
 
 ObsMode = Literal["rgb", "state"]
@@ -33,6 +33,10 @@ RewardMode = Literal["dense", "sparse"]
 #: Our reward names mapped to ManiSkill's reward modes.
 _REWARD_MODES = {"dense": "normalized_dense", "sparse": "sparse"}
 _OBS_MODES = ("rgb", "state")
+#: Seeds of ``ParallelEnv`` worker ``w`` start at ``train_seed + w * WORKER_SEED_STRIDE``.
+WORKER_SEED_STRIDE = 100_000
+#: Info entry with the seed an episode was reset with (``mmada_rl.keys.GROUP_KEY`` in transitions).
+EPISODE_SEED_KEY = GROUP_KEY[-1]
 
 
 @dataclass
@@ -52,6 +56,13 @@ class EnvConfig:
         ignore_terminations: keep stepping after success until truncation
             (ManiSkill's protocol for ``success_at_end``).
         num_workers: ``ParallelEnv`` workers; 1 builds a single env.
+        train_seed: ``None`` (default): resets without a seed continue the env's
+            RNG. An int: episode ``e`` of worker ``w`` starts from seed
+            ``train_seed + w * WORKER_SEED_STRIDE + e // group_size``, and the
+            seed is reported as ``("next", "episode_seed")`` (a ``reset(seed=...)``
+            still uses the seed it is given).
+        group_size: consecutive episodes of a worker sharing one initial state
+            (group-relative advantages compare them).
     """
 
     task: str = "PickCube-v1"
@@ -62,6 +73,8 @@ class EnvConfig:
     max_episode_steps: int | None = None
     ignore_terminations: bool = False
     num_workers: int = 1
+    train_seed: int | None = None
+    group_size: int = 1
 
     def __post_init__(self) -> None:
         if self.obs_mode not in _OBS_MODES:
@@ -74,6 +87,10 @@ class EnvConfig:
             raise ValueError(f"max_episode_steps must be positive, got {self.max_episode_steps!r}.")
         if self.num_workers < 1:
             raise ValueError(f"num_workers must be >= 1, got {self.num_workers!r}.")
+        if self.group_size < 1:
+            raise ValueError(f"group_size must be >= 1, got {self.group_size!r}.")
+        if self.train_seed is not None and self.train_seed < 0:
+            raise ValueError(f"train_seed must be >= 0, got {self.train_seed!r}.")
         task_spec(self.task)  # unknown task ids fail here, with the list of supported ones
 
     @property
@@ -130,6 +147,33 @@ class CanonicalObservation(gym.Wrapper):
         return self._obs(obs), float(reward), bool(terminated), bool(truncated), self._info(info)
 
 
+class SeedSchedule(gym.Wrapper):
+    """Reset episode ``e`` with seed ``first_seed + e // group_size`` unless a seed is given.
+
+    The seed used is reported in ``info["episode_seed"]`` at reset and at every step.
+    """
+
+    def __init__(self, env: gym.Env, first_seed: int, group_size: int = 1):
+        super().__init__(env)
+        self.first_seed, self.group_size = int(first_seed), int(group_size)
+        self.episodes, self.seed = 0, -1
+
+    def reset(self, *, seed: int | None = None, **kwargs):
+        if seed is None:
+            seed = self.first_seed + self.episodes // self.group_size
+            self.episodes += 1
+        self.seed = int(seed)
+        obs, info = self.env.reset(seed=self.seed, **kwargs)
+        return obs, self._info(info)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return obs, reward, terminated, truncated, self._info(info)
+
+    def _info(self, info: dict) -> dict:
+        return {**info, EPISODE_SEED_KEY: np.asarray([self.seed], dtype=np.int64)}
+
+
 class ManiSkillEnv(GymWrapper):
     """TorchRL's ``GymWrapper`` for one unbatched ManiSkill env.
 
@@ -179,23 +223,33 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
     return CanonicalObservation(env, cfg.obs_mode)
 
 
-def _make_single_env(cfg: EnvConfig) -> TransformedEnv:
-    base = ManiSkillEnv(make_gym_env(cfg))
-    base.set_info_dict_reader(default_info_dict_reader(["success"], spec=[Binary(shape=(1,), dtype=torch.bool)]))
+def _make_single_env(cfg: EnvConfig, worker: int = 0, extra_transform: Callable[[], Transform] | None = None) -> TransformedEnv:
+    gym_env = make_gym_env(cfg)
+    info_keys, info_specs = ["success"], [Binary(shape=(1,), dtype=torch.bool)]
+    if cfg.train_seed is not None:
+        gym_env = SeedSchedule(gym_env, cfg.train_seed + worker * WORKER_SEED_STRIDE, cfg.group_size)
+        info_keys.append(EPISODE_SEED_KEY)
+        info_specs.append(Unbounded(shape=(1,), dtype=torch.int64))
+    base = ManiSkillEnv(gym_env)
+    base.set_info_dict_reader(default_info_dict_reader(info_keys, spec=info_specs))
     keys = {"camera": IMAGE_KEY, "proprio": STATE_KEY}
     if cfg.obs_mode != "rgb":
         keys.pop("camera")
     nest = RenameTransform(in_keys=list(keys), out_keys=list(keys.values()))
-    return TransformedEnv(
-        base, Compose(nest, InstructionTransform(task_spec(cfg.task).instruction), StepCounter())
-    )
+    transforms = [nest, InstructionTransform(task_spec(cfg.task).instruction), StepCounter()]
+    if extra_transform is not None:
+        transforms.append(extra_transform())
+    return TransformedEnv(base, Compose(*transforms))
 
 
-def make_env(task: str | EnvConfig = "PickCube-v1", **overrides) -> TransformedEnv | ParallelEnv:
+def make_env(task: str | EnvConfig = "PickCube-v1", *, extra_transform: Callable[[], Transform] | None = None,
+             **overrides) -> TransformedEnv | ParallelEnv:
     """Build a ManiSkill3 task as a TorchRL env.
 
     Args:
         task: a task id, or a full :class:`EnvConfig`.
+        extra_transform: a picklable callable returning a transform appended to
+            every single env (inside each ``ParallelEnv`` worker).
         **overrides: :class:`EnvConfig` fields (``obs_mode``, ``image_size``,
             ``control_mode``, ``reward``, ``num_workers``, ...).
 
@@ -214,17 +268,19 @@ def make_env(task: str | EnvConfig = "PickCube-v1", **overrides) -> TransformedE
     if isinstance(task, EnvConfig) and overrides:
         cfg = EnvConfig(**{**cfg.to_dict(), **overrides})
     if cfg.num_workers == 1:
-        return _make_single_env(cfg)
+        return _make_single_env(cfg, extra_transform=extra_transform)
     # ``spawn`` (ParallelEnv's default): ``fork`` deadlocks SAPIEN at the first reset.
     # device="cpu": without a device, TorchRL 0.14.1 fails to stack a rollout whose episode ends mid-chunk
-    return ParallelEnv(cfg.num_workers, _EnvFactory(cfg), mp_start_method="spawn", device="cpu")
+    factories = [_EnvFactory(cfg, worker, extra_transform) for worker in range(cfg.num_workers)]
+    return ParallelEnv(cfg.num_workers, factories, mp_start_method="spawn", device="cpu")
 
 
 class _EnvFactory:
     """Picklable constructor for ``ParallelEnv`` workers."""
 
-    def __init__(self, cfg: EnvConfig):
+    def __init__(self, cfg: EnvConfig, worker: int = 0, extra_transform: Callable[[], Transform] | None = None):
         self.cfg = EnvConfig(**{**cfg.to_dict(), "num_workers": 1})
+        self.worker, self.extra_transform = worker, extra_transform
 
     def __call__(self) -> TransformedEnv:
-        return _make_single_env(self.cfg)
+        return _make_single_env(self.cfg, self.worker, self.extra_transform)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -18,9 +19,24 @@ from mmada_rl.diffusion.schedules import NoiseSchedule, make_noise_schedule
 from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.tokenizers.layout import SEGMENTS
 
-__all__ = ["MaskedDiffusionLoss"]
+__all__ = ["MaskedDiffusionLoss", "ScoredPositions"]
 
-_ACTION, _GOAL = SEGMENTS.index("action"), SEGMENTS.index("goal")
+ACTION_SEGMENT, GOAL_SEGMENT = SEGMENTS.index("action"), SEGMENTS.index("goal")
+
+
+class ScoredPositions(NamedTuple):
+    """The ``M`` scored positions of a batch (:meth:`MaskedDiffusionLoss.score`)."""
+
+    rows: torch.Tensor  # (M,) sample index
+    cols: torch.Tensor  # (M,) sequence position
+    logits: torch.Tensor  # (M, V)
+    targets: torch.Tensor  # (M,) clean ids
+    ce: torch.Tensor  # (M,) cross-entropy of the clean id
+    segment: torch.Tensor  # (M,) segment id (SEGMENTS order)
+    noisy: torch.Tensor  # (B, L) the denoiser's input
+    noise_level: torch.Tensor  # (B,)
+    num_scored: torch.Tensor  # () M
+    batch: int  # B
 
 
 class MaskedDiffusionLoss(LossModule):
@@ -168,7 +184,9 @@ class MaskedDiffusionLoss(LossModule):
         return valid.reshape(batch)
 
     # -- loss ----------------------------------------------------------------
-    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+    def score(self, tensordict: TensorDictBase) -> ScoredPositions:
+        """Corrupt (or read the given corruption), run the denoiser, and return the
+        logits and cross-entropies of every scored position (what every loss aggregates)."""
         keys, layout = self.tensor_keys, self.layout
         clean = tensordict.get(keys.sequence)
         clean = clean.reshape(-1, clean.shape[-1])  # (B, L)
@@ -204,19 +222,28 @@ class MaskedDiffusionLoss(LossModule):
             rows, cols = scored.nonzero(as_tuple=True)  # (M,), (M,)
             logits = net.project(hidden[rows, cols], cols)  # (M, V)
         ce = F.cross_entropy(logits, clean[rows, cols], reduction="none")  # (M,)
-        correct = (logits.argmax(-1) == clean[rows, cols]).float()
         segment = layout.segment_ids.to(device)[cols]
+        return ScoredPositions(
+            rows=rows, cols=cols, logits=logits, targets=clean[rows, cols], ce=ce, segment=segment,
+            noisy=noisy, noise_level=noise_level, num_scored=scored.sum(), batch=batch,
+        )
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        layout = self.layout
+        s = self.score(tensordict)
+        ce, segment = s.ce, s.segment
+        correct = (s.logits.argmax(-1) == s.targets).float()
 
         out = {}
-        groups = {"action": segment == _ACTION, "goal": segment == _GOAL}
+        groups = {"action": segment == ACTION_SEGMENT, "goal": segment == GOAL_SEGMENT}
         if self.condition_mask_prob > 0:
-            groups["condition"] = (segment != _ACTION) & (segment != _GOAL)
+            groups["condition"] = (segment != ACTION_SEGMENT) & (segment != GOAL_SEGMENT)
         weights = {"action": self.action_weight, "goal": self.goal_weight, "condition": self.condition_weight}
         for name, select in groups.items():
             count = select.sum().clamp_min(1)
             out[f"loss_{name}"] = weights[name] * torch.where(select, ce, torch.zeros_like(ce)).sum() / count
             if name != "condition" and (name != "goal" or layout.has_goal):
                 out[f"{name}_accuracy"] = (correct * select).sum().detach() / count
-        out["noise_level"] = noise_level.float().mean().detach()
-        out["num_scored"] = scored.sum().detach().float()
+        out["noise_level"] = s.noise_level.float().mean().detach()
+        out["num_scored"] = s.num_scored.detach().float()
         return TensorDict(out, batch_size=[])

@@ -33,7 +33,7 @@ from mmada_rl.envs.maniskill import EnvConfig, make_env
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY
 from mmada_rl.policy.actor import MMaDAActor, check_execute_steps
 
-__all__ = ["PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
+__all__ = ["ChunkReward", "PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
 
 #: written by :class:`~torchrl.envs.transforms.InitTracker`: True on the first step after a reset.
 INIT_KEY = "is_init"
@@ -99,6 +99,49 @@ class TemporalEnsemble(TensorDictModuleBase):
         return out
 
 
+class ChunkReward(MultiAction):
+    """:class:`~torchrl.envs.transforms.MultiAction` whose outer reward is the chunk's discounted return.
+
+    A chunk is one macro-action: its reward is ``sum_i gamma**i * r_i`` over the
+    ``k`` executed steps (fewer when a ``done`` cuts the chunk short; the skipped
+    steps count 0), so a chunk-level value function bootstraps with ``gamma**k``.
+    TorchRL's ``MultiAction(stack_rewards=False)`` keeps only the last step's
+    reward, which loses every dense reward but one per chunk.
+
+    Args:
+        gamma: per-step discount inside the chunk.
+
+    Examples:
+        >>> env = TransformedEnv(make_env("PushCube-v1"), ChunkReward(gamma=0.99))
+        >>> td = env.reset().set("action", torch.zeros(5, 7))   # a 5-step chunk
+        >>> env.step(td)["next", "reward"].shape                 # one reward per chunk
+        torch.Size([1])
+    """
+
+    def __init__(self, gamma: float = 1.0, **kwargs) -> None:
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must lie in (0, 1], got {gamma!r}.")
+        if kwargs.get("stack_rewards") is False:
+            raise ValueError("ChunkReward sums the stacked rewards; stack_rewards cannot be False.")
+        kwargs["stack_rewards"] = True
+        super().__init__(**kwargs)
+        self.gamma = float(gamma)
+
+    def _transform_reward_spec(self, reward_spec, ndim):
+        return reward_spec  # one (summed) reward per chunk, shaped as a single step's
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict = super()._step(tensordict, next_tensordict)  # rewards stacked along the chunk dim
+        dim = next_tensordict.batch_dims + self.dim - 1  # where MultiAction stacked the steps
+        for key in self.parent.reward_keys:
+            stacked = next_tensordict.get(key)  # (*B, n, *R): executed steps, then zero-filled skipped ones
+            n = stacked.shape[dim]
+            discount = self.gamma ** torch.arange(n, dtype=stacked.dtype, device=stacked.device)
+            discount = discount.view(n, *([1] * (stacked.ndim - dim - 1)))
+            next_tensordict.set(key, (stacked * discount).sum(dim))
+        return next_tensordict
+
+
 class StepLog(Transform):
     """Keep selected entries of every executed env step in memory (single env, for evaluation).
 
@@ -150,6 +193,7 @@ def make_policy_env(
     temporal_ensemble: bool = False,
     ensemble_decay: float = 0.01,
     log_keys: list | None = None,
+    chunk_gamma: float | None = None,
 ) -> PolicyEnv:
     """Wrap an env so that one policy call decodes a chunk and the first ``k`` actions run.
 
@@ -163,11 +207,13 @@ def make_policy_env(
             last ``K`` chunks' predictions (needs ``k = 1``).
         ensemble_decay: ``m`` of the ensemble weights ``exp(-m * i)``.
         log_keys: keep these entries of every inner step in ``step_log`` (single env).
+        chunk_gamma: ``None`` (default): the outer transition's ``("next", "reward")``
+            is the reward of the chunk's last executed step — 0 when a ``done``
+            inside the chunk cut it short (``MultiAction(stack_rewards=False)``),
+            enough for evaluation. A float: the chunk's discounted return
+            ``sum_i chunk_gamma**i * r_i`` (:class:`ChunkReward`), what RL fine-tuning needs.
 
-    The outer transition's ``("next", "reward")`` is the reward of the chunk's
-    last executed step — 0 when a ``done`` inside the chunk cut it short
-    (``MultiAction(stack_rewards=False)``); ``("next", "step_count")`` counts
-    inner steps.
+    ``("next", "step_count")`` counts inner steps.
 
     Examples:
         >>> penv = make_policy_env(EnvConfig("PickCube-v1"), MMaDAActor(model), execute_steps=2)
@@ -187,7 +233,8 @@ def make_policy_env(
         # step of a done inside a chunk (device cpu): rollouts then fail to stack (TorchRL 0.14.1)
         inner = inner.to("cpu")
     step_log = StepLog(log_keys) if log_keys else None
-    transforms = [MultiAction(stack_rewards=False), InitTracker()]  # InitTracker after: once per decision
+    chunker = MultiAction(stack_rewards=False) if chunk_gamma is None else ChunkReward(chunk_gamma)
+    transforms = [chunker, InitTracker()]  # InitTracker after: once per decision
     if step_log is not None:
         transforms.insert(0, step_log)  # before MultiAction: called at every inner step
     # auto_unwrap=False: leave the given env intact (TorchRL would otherwise move its

@@ -197,13 +197,25 @@ class MMaDAModel(nn.Module):
         return out
 
     @torch.no_grad()
-    def sequence(self, td: TensorDictBase) -> torch.Tensor:
-        """Clean global ids ``[B, L]`` of training windows (needs the chunk and, if predicted, the goal image)."""
+    def sequence(self, td: TensorDictBase, action_tokens: torch.Tensor | None = None) -> torch.Tensor:
+        """Clean global ids ``[B, L]`` of training windows (needs the chunk and, if predicted, the goal image).
+
+        ``action_tokens`` (local codes ``[B, K, d_tok]``, e.g. the ones a rollout
+        sampled) are used as they are instead of re-encoding the chunk.
+        """
         cond = self._condition(td)
-        chunk = td.get(ACTION_CHUNK_KEY)  # (B, K, A)
-        if chunk.shape[-2] != self.config.chunk_size:
-            raise ValueError(f"action chunks hold {chunk.shape[-2]} actions but the model's chunk_size is {self.config.chunk_size}.")
-        actions = self.action_tokenizer.encode(chunk)  # (B, K, d_tok)
+        if action_tokens is None:
+            chunk = td.get(ACTION_CHUNK_KEY)  # (B, K, A)
+            if chunk.shape[-2] != self.config.chunk_size:
+                raise ValueError(f"action chunks hold {chunk.shape[-2]} actions but the model's chunk_size is {self.config.chunk_size}.")
+            with warnings.catch_warnings():
+                # demonstrations beyond the 1st/99th percentiles are clipped by design (counted, not warned per batch)
+                warnings.simplefilter("ignore", ActionOutOfRangeWarning)
+                actions = self.action_tokenizer.encode(chunk)  # (B, K, d_tok)
+        else:
+            actions = action_tokens.reshape(-1, *action_tokens.shape[-2:])
+            if actions.shape[-2] != self.config.chunk_size:
+                raise ValueError(f"action_tokens hold {actions.shape[-2]} actions but the model's chunk_size is {self.config.chunk_size}.")
         goal = self.image_tokenizer.encode(td.get(GOAL_IMAGE_KEY)) if self.config.predict_goal else None
         return self.layout.assemble(goal_ids=goal, action_ids=actions, **cond)
 

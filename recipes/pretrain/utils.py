@@ -36,7 +36,8 @@ def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Token
         directory = run_dir / "tokenizers"
         if not (directory / "action").exists():
             fit = TokenizerFitConfig(**{**tcfg, "seed": int(cfg.seed)})
-            fit.action["hidden_sizes"] = tuple(fit.action.get("hidden_sizes", (256, 256)))
+            if "hidden_sizes" in fit.action:  # learned tokenizers only (bins have no network)
+                fit.action["hidden_sizes"] = tuple(fit.action["hidden_sizes"])
             fitted = fit_tokenizers(buffer, fit)
             fitted.save(directory)
     tokenizers = Tokenizers.load(directory)

@@ -1,0 +1,238 @@
+"""Online fine-tuning of a pretrained MMaDA-VLA policy in ManiSkill: reward-weighted diffusion or path PPO.
+
+    python recipes/finetune/finetune.py pretrained=runs/pretrain_toy                       # toy: seconds
+    python recipes/finetune/finetune.py --config-name maniskill pretrained=runs/pretrain_PickCube-v1_s0
+    python recipes/finetune/finetune.py --config-name maniskill algo=ppo pretrained=...    # path-likelihood PPO
+    python recipes/finetune/finetune.py ... advantage.estimator=group advantage.group_size=4  # critic-free
+    python recipes/finetune/finetune.py ... checkpoint.resume=true                          # continue the run
+
+Each iteration, TorchRL's ``SyncDataCollector`` runs the actor with sampled
+decoding for ``collector.decisions_per_batch`` decisions (one decision = one
+chunk of ``k`` executed env steps, rewarded with its discounted reward sum).
+Advantages per decision come from a learned value function with TorchRL's GAE
+(discount ``gamma ** k``) or, critic-free, from returns standardised within groups
+of rollouts that share an initial state. Then:
+
+* ``algo=rwr``: the decisions join an online buffer; each update mixes
+  ``demos.ratio`` demonstration windows with online rows and applies
+  :class:`~mmada_rl.objectives.RewardWeightedDiffusionLoss` (advantage-weighted
+  action tokens, plain goal-image denoising, optional KL to the pretrained policy);
+* ``algo=ppo``: :class:`~mmada_rl.objectives.PathPPOLoss` on the fresh batch,
+  the ratio recomputed exactly from each chunk's stored decoding path.
+
+Evaluation (greedy, fixed seeds disjoint from training) runs every
+``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
+against env steps. Checkpoints (policy, value network, optimizers, counters,
+RNG) are atomic; the online buffer is saved beside them. If the env raises
+while collecting, the run saves what it has and stops with a clear message.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from mmada_rl.evaluation import evaluate
+from mmada_rl.training import resume_training, save_checkpoint
+from utils import (
+    PREFIX,
+    EpisodeGroups,
+    check_config,
+    decision_rows,
+    executed_steps,
+    load_pretrained,
+    make_collector,
+    make_demo_windows,
+    make_gae,
+    make_logger,
+    make_loss,
+    make_online_buffer,
+    make_optim,
+    make_policy_env_for,
+    make_value,
+    mixed_batch,
+    open_demo_buffer,
+    split_batch,
+)
+from mmada_rl.keys import IMAGE_KEY, STATE_KEY, SUCCESS_KEY, VALUE_TARGET_KEY
+
+BUFFER_DIR = "online_buffer"
+
+
+def run_eval(cfg: DictConfig, model, env_steps: int, updates: int, start: float) -> dict:
+    result = evaluate(model, cfg.env.task, episodes=int(cfg.eval.episodes), execute_steps=cfg.collector.execute_steps,
+                      control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps, progress=False)
+    return {
+        "env_steps": env_steps, "updates": updates, "success_once": result.success_once,
+        "success_once_ci_low": result.success_once_ci_low, "success_once_ci_high": result.success_once_ci_high,
+        "success_at_end": result.success_at_end, "episodes": result.episodes, "wall_s": time.perf_counter() - start,
+    }
+
+
+def update_value(cfg, value_op, value_optim, rows) -> float:
+    """A few epochs of regression of ``V(o_t)`` on the GAE value targets of the fresh batch."""
+    losses, n = [], rows.shape[0]
+    size = max(1, min(int(cfg.value.batch_size), n))
+    for _ in range(int(cfg.value.epochs)):
+        for idx in torch.randperm(n).split(size):
+            batch = rows[idx]
+            pred = value_op(batch.select(IMAGE_KEY, STATE_KEY).clone()).get("state_value")
+            loss = torch.nn.functional.mse_loss(pred, batch.get(VALUE_TARGET_KEY).reshape(pred.shape))
+            value_optim.zero_grad(set_to_none=True)
+            loss.backward()
+            value_optim.step()
+            losses.append(float(loss.detach()))
+    return sum(losses) / max(1, len(losses))
+
+
+def gradient_step(cfg, model, optimizer, losses) -> float:
+    loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(model.denoiser.parameters(), float(cfg.optim.grad_clip))
+    optimizer.step()
+    return float(grad_norm)
+
+
+@hydra.main(config_path="config", config_name="toy", version_base=None)
+def main(cfg: DictConfig) -> None:
+    if cfg.num_threads:
+        torch.set_num_threads(int(cfg.num_threads))
+    check_config(cfg)
+    torch.manual_seed(int(cfg.seed))
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config = OmegaConf.to_container(cfg, resolve=True)
+
+    model = load_pretrained(cfg)
+    demos = open_demo_buffer(cfg, model)
+    value_op, value_optim = make_value(cfg, model, demos)
+    gae = make_gae(cfg, value_op, model) if cfg.advantage.estimator == "gae" else None
+    groups = EpisodeGroups(int(cfg.advantage.group_size)) if cfg.advantage.estimator == "group" else None
+    loss_module = make_loss(cfg, model)
+    optimizer = make_optim(cfg, model)
+    online = make_online_buffer(cfg)
+    demo_windows = make_demo_windows(cfg, demos, model)
+    n_online, n_demo = split_batch(cfg)
+    logger = make_logger(cfg, run_dir)
+    generators = {"demos": demo_windows._rng} if demo_windows is not None else {}
+
+    iteration, env_steps, updates, history = 0, 0, 0, []
+
+    def load_weights(model_dir: Path) -> None:
+        model.denoiser.load_state_dict(type(model).load(model_dir).denoiser.state_dict())
+
+    ckpt = resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer, generators=generators)
+    if ckpt is not None:
+        extra = ckpt.trainer_state["extra"]
+        iteration, env_steps, updates, history = ckpt.step, extra["env_steps"], extra["updates"], extra["eval_history"]
+        value_op.load_state_dict(extra["value"])
+        value_optim.load_state_dict(extra["value_optimizer"])
+        if (run_dir / BUFFER_DIR).exists():
+            online.loads(run_dir / BUFFER_DIR)
+        print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows")
+
+    def checkpoint() -> Path:
+        if len(online):
+            online.dumps(run_dir / BUFFER_DIR)
+        extra = {"env_steps": env_steps, "updates": updates, "eval_history": history,
+                 "value": value_op.state_dict(), "value_optimizer": value_optim.state_dict()}
+        return save_checkpoint(run_dir, iteration, model=model, optimizer=optimizer, config=config, generators=generators,
+                               extra=extra, keep=int(cfg.checkpoint.keep))
+
+    start = time.perf_counter()
+    total = int(cfg.collector.total_env_steps)
+    eval_every = int(cfg.eval.interval_env_steps or 0)
+    if not history and int(cfg.eval.episodes) > 0:
+        history.append(run_eval(cfg, model, 0, 0, start))
+        print(f"{PREFIX} pretrained policy: success_once {history[-1]['success_once']:.2f} over {history[-1]['episodes']} episodes")
+    print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} batch {n_online} online + {n_demo} demo rows; "
+          f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps")
+
+    penv = make_policy_env_for(cfg, model)
+    collector = make_collector(cfg, penv)
+    batches = iter(collector)
+    pbar = tqdm(total=total, initial=min(env_steps, total), desc=f"finetune {cfg.algo}", unit="step")
+    try:
+        while env_steps < total:
+            t0 = time.perf_counter()
+            model.eval()  # sampling and the recorded paths without dropout
+            try:
+                batch = next(batches)
+            except Exception as err:  # an env (or worker) failed: keep what was learned and collected
+                path = checkpoint()
+                sys.exit(f"{PREFIX} collection failed after {env_steps} env steps: {type(err).__name__}: {err}\n"
+                         f"{PREFIX} saved checkpoint {path} and the online buffer ({len(online)} rows) in {run_dir / BUFFER_DIR}; "
+                         "fix the cause and rerun with checkpoint.resume=true.")
+            steps = int(executed_steps(batch).sum())
+            env_steps += steps
+            pbar.update(steps)
+            collect_s = time.perf_counter() - t0
+            metrics = {"train/chunk_reward": float(batch.get(("next", "reward")).mean()),
+                       "train/success_rate": float(batch.get(("next", SUCCESS_KEY)).float().mean()),
+                       "time/collect_s": collect_s}
+
+            if gae is not None:
+                with torch.no_grad():
+                    gae(batch)
+                episodes = [batch]
+            else:
+                episodes = groups.add(batch)
+            parts = [decision_rows(model, ep) for ep in episodes if ep.numel()]
+            rows = torch.cat(parts) if parts else None  # decisions whose advantages are known
+            if rows is not None:
+                metrics["train/advantage_abs"] = float(rows.get("advantage").abs().mean())
+                if gae is not None:
+                    metrics["train/value_loss"] = update_value(cfg, value_op, value_optim, rows)
+
+            t1, losses = time.perf_counter(), None
+            if cfg.algo == "rwr":
+                if rows is not None:
+                    online.extend(rows)
+                model.train()
+                for _ in range(int(cfg.optim.updates_per_batch) if len(online) else 0):
+                    losses = loss_module(mixed_batch(model, online.sample(), demo_windows))
+                    metrics["train/grad_norm"] = gradient_step(cfg, model, optimizer, losses)
+                    updates += 1
+            elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped
+                size = max(1, min(int(cfg.replay_buffer.batch_size), rows.shape[0]))
+                for _ in range(int(cfg.loss.ppo.epochs)):
+                    for idx in torch.randperm(rows.shape[0]).split(size):
+                        losses = loss_module(rows[idx])
+                        metrics["train/grad_norm"] = gradient_step(cfg, model, optimizer, losses)
+                        updates += 1
+            if losses is not None:
+                metrics.update({f"train/{k}": float(v.detach()) for k, v in losses.items()})
+            metrics["time/update_s"] = time.perf_counter() - t1
+            iteration += 1
+            metrics.update({"train/env_steps": env_steps, "train/updates": updates})
+
+            crossed = eval_every and (env_steps // eval_every) > ((env_steps - steps) // eval_every)
+            if int(cfg.eval.episodes) > 0 and (crossed or env_steps >= total):
+                history.append(run_eval(cfg, model, env_steps, updates, start))
+                metrics["eval/success_once"] = history[-1]["success_once"]
+                (run_dir / "eval_history.json").write_text(json.dumps(history, indent=2))
+            for key, value in metrics.items():
+                logger.log_scalar(key, value, step=env_steps)
+            pbar.set_postfix(reward=f"{metrics['train/chunk_reward']:.3f}", success=f"{metrics['train/success_rate']:.2f}")
+            if iteration % int(cfg.checkpoint.interval) == 0 or env_steps >= total:
+                checkpoint()
+    finally:
+        pbar.close()
+        collector.shutdown()
+
+    (run_dir / "eval_history.json").write_text(json.dumps(history, indent=2))
+    final = {**(history[-1] if history else {}), "iterations": iteration, "config": config}
+    (run_dir / "final.json").write_text(json.dumps(final, indent=2))
+    print(f"{PREFIX} done: {env_steps} env steps, {updates} updates; "
+          + (f"success_once {history[-1]['success_once']:.2f}" if history else "no evaluation"))
+
+
+if __name__ == "__main__":
+    main()

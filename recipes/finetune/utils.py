@@ -1,0 +1,285 @@
+"""Factories and data plumbing of the fine-tuning recipe: each ``make_*`` turns one config section into objects."""
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+from torchrl.envs import Transform
+from torchrl.envs.utils import ExplorationType
+from torchrl.objectives.value import GAE
+
+from mmada_rl import training
+from mmada_rl.baselines import NormalizationStats
+from mmada_rl.baselines.encoders import EncoderConfig
+from mmada_rl.data import DemoBuffer, make_window_buffer
+from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
+from mmada_rl.envs.maniskill import EnvConfig, make_env
+from mmada_rl.evaluation import EVAL_SEED_BASE, resolve_model_dir
+from mmada_rl.envs.maniskill import WORKER_SEED_STRIDE
+from mmada_rl.keys import (
+    ACTION_IS_PAD_KEY,
+    ADVANTAGE_KEY,
+    GOAL_IMAGE_KEY,
+    GROUP_KEY,
+    IMAGE_KEY,
+    INSTRUCTION_KEY,
+    IS_DEMO_KEY,
+    SEQUENCE_KEY,
+    STATE_KEY,
+    STEP_KEY,
+    VALUE_TARGET_KEY,
+)
+from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
+from mmada_rl.objectives.advantages import group_relative_advantages
+from mmada_rl.policy import MMaDAActor, MMaDAModel
+from mmada_rl.policy.actor import DECODING_PATH_KEY
+from mmada_rl.policy.execution import PolicyEnv, make_policy_env
+from mmada_rl.policy.value import ValueNetwork, make_value_operator
+from mmada_rl.training.demos import open_demos
+
+PREFIX = "[finetune]"
+ALGOS = ("rwr", "ppo")
+ESTIMATORS = ("gae", "group")
+#: the sampled action tokens of a decision (VLAWrapperBase's ``("vla_action", "tokens")``)
+TOKENS_KEY = ("vla_action", "tokens")
+#: what every training row of the online buffer holds
+ROW_KEYS = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, VALUE_TARGET_KEY, IMAGE_KEY, STATE_KEY, DECODING_PATH_KEY]
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Fail early, with one sentence, on settings that cannot work together."""
+    if cfg.algo not in ALGOS:
+        raise ValueError(f"algo={cfg.algo!r} is not a fine-tuning algorithm; use algo=rwr or algo=ppo.")
+    if cfg.advantage.estimator not in ESTIMATORS:
+        raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae or group.")
+    if cfg.pretrained is None:
+        raise ValueError("pretrained=null: pass the pretraining run (pretrained=runs/pretrain_...) or a checkpoint/model directory.")
+    if not 0.0 <= float(cfg.demos.ratio) < 1.0:
+        raise ValueError(f"demos.ratio must lie in [0, 1), got {cfg.demos.ratio!r}.")
+    last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
+    if last > EVAL_SEED_BASE:
+        raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
+                         f"into the evaluation seeds (>= {EVAL_SEED_BASE}); lower it.")
+
+
+# -- policy -------------------------------------------------------------------------
+def load_pretrained(cfg: DictConfig) -> MMaDAModel:
+    """The pretrained policy (a pretraining run directory, a checkpoint, or a saved model)."""
+    model = MMaDAModel.load(resolve_model_dir(cfg.pretrained), device=cfg.device)
+    sampler = asdict(model.sampler.config)
+    sampler["temperature"] = float(cfg.collector.temperature)
+    model.sampler = MaskedDiffusionSampler(SamplerConfig(**sampler))
+    return model
+
+
+def make_env_config(cfg: DictConfig, model: MMaDAModel) -> EnvConfig:
+    e = cfg.env
+    return EnvConfig(
+        task=e.task, image_size=model.image_size, control_mode=e.control_mode, reward=e.reward,
+        max_episode_steps=e.max_episode_steps, num_workers=int(e.num_workers), train_seed=int(e.train_seed),
+        group_size=int(cfg.advantage.group_size) if cfg.advantage.estimator == "group" else 1,
+    )
+
+
+class FailAfterSteps(Transform):
+    """Fault injection for tests: raise inside the env after ``steps`` steps."""
+
+    def __init__(self, steps: int) -> None:
+        super().__init__()
+        self.steps, self.count = int(steps), 0
+
+    def _step(self, tensordict, next_tensordict):
+        self.count += 1
+        if self.count > self.steps:
+            raise RuntimeError(f"injected env failure after {self.steps} steps (debug.fail_after_env_steps)")
+        return next_tensordict
+
+    def _reset(self, tensordict, tensordict_reset):
+        return tensordict_reset
+
+
+class _FailAfter:
+    def __init__(self, steps: int) -> None:
+        self.steps = steps
+
+    def __call__(self) -> FailAfterSteps:
+        return FailAfterSteps(self.steps)
+
+
+def make_policy_env_for(cfg: DictConfig, model: MMaDAModel) -> PolicyEnv:
+    """The training env: chunks of ``execute_steps`` actions, each with its discounted reward sum."""
+    fail = cfg.debug.fail_after_env_steps
+    env = make_env(make_env_config(cfg, model), extra_transform=_FailAfter(int(fail)) if fail else None)
+    actor = MMaDAActor(model, execute_steps=cfg.collector.execute_steps)
+    return make_policy_env(env, actor, chunk_gamma=float(cfg.advantage.gamma))
+
+
+def make_collector(cfg: DictConfig, penv: PolicyEnv) -> Collector:
+    """TorchRL's collector running the actor with sampled (not greedy) decoding."""
+    return Collector(
+        penv.env, penv.policy, frames_per_batch=int(cfg.collector.decisions_per_batch), total_frames=-1,
+        exploration_type=ExplorationType.RANDOM, device="cpu",
+    )
+
+
+# -- value and advantages -------------------------------------------------------------
+def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
+    """Chunk-level value network (encoder + MLP) as a ``ValueOperator``, with its optimizer."""
+    stats = NormalizationStats.from_buffer(demos)
+    net = ValueNetwork(EncoderConfig(**cfg.value.encoder), image_size=model.image_size, state_dim=demos.metadata.state_dim,
+                       hidden=int(cfg.value.hidden), state_mean=stats.state_mean, state_std=stats.state_std)
+    operator = make_value_operator(net).to(cfg.device)
+    optimizer = training.make_optimizer(operator.parameters(), lr=float(cfg.value.lr), weight_decay=0.0)
+    return operator, optimizer
+
+
+def make_gae(cfg: DictConfig, value_operator, model: MMaDAModel) -> GAE:
+    """TorchRL's GAE over decisions: consecutive decisions are ``k`` env steps apart (discount ``gamma ** k``)."""
+    k = int(cfg.collector.execute_steps or model.config.chunk_size)
+    return GAE(gamma=float(cfg.advantage.gamma) ** k, lmbda=float(cfg.advantage.lmbda), value_network=value_operator,
+               average_gae=False)
+
+
+def executed_steps(batch: TensorDictBase) -> torch.Tensor:
+    """Env steps each decision executed (``k``, fewer when the episode ended inside the chunk), long ``[*B]``."""
+    return (batch.get(("next", STEP_KEY)) - batch.get(STEP_KEY)).reshape(batch.shape)
+
+
+def decision_rows(model: MMaDAModel, batch: TensorDictBase) -> TensorDict:
+    """Training rows of collected decisions (flattened to ``[N]``).
+
+    The clean sequence holds the sampled action tokens and, as goal, the frame
+    actually observed after the executed steps (``o_{t+K}`` when the whole chunk
+    ran; the episode's last frame when it ended inside the chunk, as the
+    demonstrations clip it). Chunk steps that were not executed are padding.
+    """
+    flat = batch.reshape(-1)
+    window = flat.select(IMAGE_KEY, STATE_KEY, INSTRUCTION_KEY, strict=False)
+    if model.config.predict_goal:
+        window.set(GOAL_IMAGE_KEY, flat.get(("next", *IMAGE_KEY)))
+    ids = model.sequence(window, action_tokens=flat.get(TOKENS_KEY))
+    steps = executed_steps(flat)  # (N,)
+    is_pad = torch.arange(model.config.chunk_size)[None, :] >= steps[:, None]  # (N, K)
+    rows = TensorDict(
+        {SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: is_pad, IMAGE_KEY: flat.get(IMAGE_KEY), STATE_KEY: flat.get(STATE_KEY)},
+        batch_size=[ids.shape[0]],
+    )
+    rows.set(DECODING_PATH_KEY, flat.get(DECODING_PATH_KEY))
+    for key in (ADVANTAGE_KEY, VALUE_TARGET_KEY):
+        rows.set(key, flat.get(key).reshape(ids.shape[0], -1)[:, 0] if key == ADVANTAGE_KEY else flat.get(key).reshape(ids.shape[0], 1))
+    return rows
+
+
+class EpisodeGroups:
+    """Group-relative advantages: hold decisions until every episode of an initial-state group has ended.
+
+    Episode ``e`` of a worker starts from seed ``train_seed + w * stride + e // G``
+    (``EnvConfig.group_size = G``), so a group is ``G`` consecutive episodes of one
+    worker. Each episode's return is the sum of its chunk rewards; the advantage of
+    every decision of an episode is its return standardised within the group.
+    """
+
+    def __init__(self, group_size: int) -> None:
+        self.group_size = int(group_size)
+        self.running: dict[int, list[TensorDictBase]] = {}  # worker -> decisions of its unfinished episode
+        self.groups: dict[int, list[TensorDictBase]] = {}  # seed -> finished episodes
+
+    def add(self, batch: TensorDictBase) -> list[TensorDictBase]:
+        """Add a collector batch (``[T]`` or ``[W, T]``); return the episodes whose groups completed."""
+        batch = batch if batch.ndim == 2 else batch.unsqueeze(0)
+        ready = []
+        for worker in range(batch.shape[0]):
+            traj = batch[worker]
+            ends = traj.get(("next", "done")).reshape(-1).nonzero().reshape(-1).tolist()
+            start = 0
+            for end in ends:
+                pieces = self.running.pop(worker, []) + [traj[start : end + 1]]
+                episode = torch.cat(pieces)
+                start = end + 1
+                seed = int(episode.get(GROUP_KEY).reshape(-1)[-1])
+                group = self.groups.setdefault(seed, [])
+                group.append(episode)
+                if len(group) == self.group_size:
+                    ready += self._finish(self.groups.pop(seed), seed)
+            if start < traj.shape[0]:
+                self.running.setdefault(worker, []).append(traj[start:])
+        return ready
+
+    @staticmethod
+    def _finish(episodes: list[TensorDictBase], seed: int) -> list[TensorDictBase]:
+        returns = torch.stack([ep.get(("next", "reward")).sum() for ep in episodes])
+        adv = group_relative_advantages(returns, torch.full_like(returns, seed, dtype=torch.long))
+        for ep, a in zip(episodes, adv):
+            ep.set(ADVANTAGE_KEY, a.expand(ep.shape).clone())
+            ep.set(VALUE_TARGET_KEY, ep.get(("next", "reward")).sum().expand(*ep.shape, 1).clone())
+        return episodes
+
+
+# -- data -------------------------------------------------------------------------------
+def make_online_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
+    """Recent training rows (RWR samples them uniformly; PPO uses each batch once)."""
+    return TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay_buffer.capacity)), sampler=RandomSampler(),
+                                  batch_size=split_batch(cfg)[0])
+
+
+def open_demo_buffer(cfg: DictConfig, model: MMaDAModel) -> DemoBuffer:
+    env = EnvConfig(task=cfg.env.task, image_size=model.image_size, control_mode=cfg.env.control_mode)
+    return open_demos(cfg.demos.dir, env, collect_episodes=int(cfg.demos.collect_episodes), prefix=f"{PREFIX} ")
+
+
+def split_batch(cfg: DictConfig) -> tuple[int, int]:
+    """(online, demo) samples per update: ``demos.ratio`` of the batch comes from the demonstrations."""
+    total = int(cfg.replay_buffer.batch_size)
+    demo = int(round(float(cfg.demos.ratio) * total))
+    return total - demo, demo
+
+
+def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):
+    """Chunk windows of the demonstrations (``None`` when ``demos.ratio`` is 0)."""
+    _, n_demo = split_batch(cfg)
+    if n_demo == 0:
+        return None
+    return make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed))
+
+
+def mixed_batch(model: MMaDAModel, online: TensorDictBase, demo_windows) -> TensorDict:
+    """Online rows and demonstration windows in one loss batch (``is_demo`` marks the demos)."""
+    keys = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY]
+    parts = [online.select(*keys).set(IS_DEMO_KEY, torch.zeros(online.shape[0], dtype=torch.bool))]
+    if demo_windows is not None:
+        windows = demo_windows.sample()
+        ids = model.sequence(windows)
+        n = ids.shape[0]
+        parts.append(TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
+                                 ADVANTAGE_KEY: torch.zeros(n), IS_DEMO_KEY: torch.ones(n, dtype=torch.bool)}, batch_size=[n]))
+    return torch.cat(parts)
+
+
+# -- losses ------------------------------------------------------------------------------
+def make_loss(cfg: DictConfig, model: MMaDAModel):
+    if cfg.algo == "rwr":
+        r = cfg.loss.rwr
+        reference = copy.deepcopy(model.denoiser) if float(r.kl_coef) > 0 else None
+        return RewardWeightedDiffusionLoss(
+            model.denoiser, weighting=r.weighting, temperature=float(r.temperature), max_weight=float(r.max_weight),
+            max_negative_nll=float(r.max_negative_nll), demo_weight=float(r.demo_weight),
+            normalize_weights=bool(r.normalize_weights), reference=reference, kl_coef=float(r.kl_coef),
+            schedule=cfg.loss.schedule, goal_weight=float(cfg.loss.goal_weight),
+        )
+    p = cfg.loss.ppo
+    return PathPPOLoss(model.denoiser, clip_epsilon=float(p.clip_epsilon), ratio_level=p.ratio_level,
+                       normalize_advantage=bool(p.normalize_advantage))
+
+
+def make_optim(cfg: DictConfig, model: MMaDAModel):
+    return training.make_optimizer(model.denoiser.parameters(), lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay))
+
+
+def make_logger(cfg: DictConfig, run_dir: Path):
+    return training.make_logger(cfg.logger.backend, run_dir)

@@ -1,0 +1,287 @@
+"""Online fine-tuning: chunk rewards, the two losses, advantages, the demo/online mix and the recipe end to end."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from mmada_rl.diffusion.path import path_log_prob
+from mmada_rl.envs.maniskill import make_env
+from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY
+from mmada_rl.keys import ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
+from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
+from mmada_rl.objectives.advantages import group_relative_advantages
+from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_policy_env
+from mmada_rl.policy.execution import ChunkReward, StepLog
+
+torch.set_num_threads(1)
+pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
+REPO = Path(__file__).resolve().parents[1]
+RECIPE = REPO / "recipes" / "finetune" / "finetune.py"
+
+
+def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(RECIPE), *map(str, overrides)], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def recipe_utils():
+    """The recipe's ``utils`` module (recipes are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location("finetune_utils", RECIPE.parent / "utils.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def model(toy_pretrain_run) -> MMaDAModel:
+    return MMaDAModel.load(toy_pretrain_run / "checkpoints" / "step_00000006" / "model").eval()
+
+
+# -- chunk rewards and seeds ----------------------------------------------------------------
+def test_chunk_reward_is_the_discounted_sum_of_the_executed_steps():
+    log = StepLog(["reward"])
+    env = TransformedEnv(make_env("PushCube-v1", max_episode_steps=12), Compose(log, ChunkReward(gamma=0.9)), auto_unwrap=False)
+    td = env.reset(seed=0)
+    torch.manual_seed(0)
+    executed = []
+    for i in range(3):  # 5 + 5 + 2 steps: the episode ends inside the third chunk
+        td = env.step(td.set("action", torch.rand(5, 7) * 2 - 1))
+        rewards = torch.stack([s["reward"] for s in log.steps[1 + 5 * i: 6 + 5 * i]]).reshape(-1)
+        executed.append(len(rewards))
+        expected = (rewards * 0.9 ** torch.arange(len(rewards))).sum()
+        assert td["next", "reward"].shape == (1,)
+        torch.testing.assert_close(td["next", "reward"].reshape(()), expected)
+        td = step_mdp(td)
+    assert executed == [5, 5, 2]
+    env.close()
+    with pytest.raises(ValueError, match="gamma"):
+        ChunkReward(gamma=0.0)
+
+
+def test_train_seed_schedule_repeats_each_initial_state_group_size_times():
+    env = make_env("PushCube-v1", max_episode_steps=2, train_seed=10, group_size=2)
+    rollout = env.rollout(8, break_when_any_done=False)
+    seeds = rollout[GROUP_KEY].reshape(-1).tolist()
+    assert seeds == [10, 10, 10, 10, 11, 11, 11, 11]  # two 2-step episodes per seed
+    first = rollout["observation", "image"]
+    torch.testing.assert_close(first[0], first[2])  # same seed, same initial frame
+    assert not torch.equal(first[0], first[4])
+    assert env.reset(seed=5)["episode_seed"].item() == 5  # an explicit seed wins
+    env.close()
+
+
+def test_group_relative_advantages():
+    adv = group_relative_advantages(torch.tensor([1.0, 0.0, 1.0, 1.0, 3.0]), torch.tensor([7, 7, 8, 8, 9]))
+    torch.testing.assert_close(adv, torch.tensor([1.0, -1.0, 0.0, 0.0, 0.0]))
+
+
+# -- reward-weighted loss -----------------------------------------------------------------
+def _two_chunks(model: MMaDAModel, toy_pretrain_run) -> TensorDict:
+    """Two rows with the same observation and different action tokens, every target masked."""
+    from mmada_rl.keys import IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+
+    env = make_env("PickCube-v1")
+    obs = env.reset(seed=0)
+    env.close()
+    window = TensorDict({IMAGE_KEY: obs[IMAGE_KEY].expand(2, -1, -1, -1), STATE_KEY: obs[STATE_KEY].expand(2, -1)}, [2])
+    window.set(INSTRUCTION_KEY, [obs[INSTRUCTION_KEY]] * 2)
+    window.set(("goal", "image"), obs[IMAGE_KEY].expand(2, -1, -1, -1))
+    layout = model.layout
+    per = (model.config.chunk_size, layout.config.tokens_per_action)
+    tokens = torch.stack([torch.zeros(per, dtype=torch.long), torch.ones(per, dtype=torch.long)])
+    ids = model.sequence(window, action_tokens=tokens)
+    noisy = ids.clone()
+    targets = layout.target_positions
+    noisy[:, targets] = layout.vocab.mask_id
+    corrupted = torch.zeros_like(ids, dtype=torch.bool)
+    corrupted[:, targets] = True
+    return TensorDict({SEQUENCE_KEY: ids, NOISY_SEQUENCE_KEY: noisy, CORRUPTED_KEY: corrupted,
+                       NOISE_LEVEL_KEY: torch.ones(2), ADVANTAGE_KEY: torch.tensor([1.0, -1.0])}, [2])
+
+
+def _action_log_likelihood(loss_fn, td) -> torch.Tensor:
+    """Mean log-probability of each row's action tokens (fixed full masking)."""
+    with torch.no_grad():
+        s = loss_fn.score(td)
+    is_action = s.segment == ACTION_SEGMENT
+    logp = -s.ce
+    out = torch.zeros(2).index_add(0, s.rows[is_action], logp[is_action])
+    return out / torch.zeros(2).index_add(0, s.rows[is_action], torch.ones(int(is_action.sum())))
+
+
+@pytest.mark.parametrize("weighting", ["signed", "exp"])
+def test_one_update_favours_high_advantage_tokens(model, toy_pretrain_run, weighting):
+    import copy
+
+    net = copy.deepcopy(model.denoiser).train()
+    loss_fn = RewardWeightedDiffusionLoss(net, weighting=weighting, temperature=1.0, goal_weight=0.0)
+    td = _two_chunks(model, toy_pretrain_run)
+    before = _action_log_likelihood(loss_fn, td)
+    optim = torch.optim.SGD(net.parameters(), lr=0.5)
+    losses = loss_fn(td)
+    optim.zero_grad()
+    (losses["loss_action"] + losses["loss_goal"]).backward()
+    optim.step()
+    after = _action_log_likelihood(loss_fn, td)
+    change = after - before
+    assert change[0] > 0  # the high-advantage chunk became more likely
+    assert change[0] > change[1]
+    if weighting == "signed":
+        assert change[1] < 0  # and the negative-advantage one less likely
+        assert float(losses["negative_fraction"]) == 0.5
+
+
+def test_demo_rows_take_demo_weight_and_online_rows_need_an_advantage(model, toy_pretrain_run):
+    loss_fn = RewardWeightedDiffusionLoss(model.denoiser, weighting="exp", temperature=0.5, demo_weight=2.0)
+    td = _two_chunks(model, toy_pretrain_run).set(IS_DEMO_KEY, torch.tensor([True, False]))
+    weights = loss_fn.sample_weights(td, 2, torch.device("cpu"))
+    torch.testing.assert_close(weights, torch.tensor([2.0, float(torch.exp(torch.tensor(-2.0)))]))
+    with pytest.raises(KeyError, match="advantage"):
+        loss_fn.sample_weights(td.exclude(ADVANTAGE_KEY), 2, torch.device("cpu"))
+
+
+def test_kl_penalty_is_zero_at_the_reference_and_grows_when_the_policy_moves(model, toy_pretrain_run):
+    import copy
+
+    net = copy.deepcopy(model.denoiser)
+    loss_fn = RewardWeightedDiffusionLoss(net, reference=model.denoiser, kl_coef=1.0)
+    td = _two_chunks(model, toy_pretrain_run)
+    assert float(loss_fn(td)["loss_kl"].detach()) == pytest.approx(0.0, abs=1e-5)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    assert float(loss_fn(td)["loss_kl"].detach()) > 1e-3
+    with pytest.raises(ValueError, match="reference"):
+        RewardWeightedDiffusionLoss(net, kl_coef=1.0)
+
+
+# -- path PPO ---------------------------------------------------------------------------------
+def test_path_ppo_ratio_is_one_at_unchanged_parameters_and_an_update_raises_good_paths(model):
+    import copy
+
+    env = make_env("PickCube-v1", max_episode_steps=10)
+    actor = MMaDAActor(copy.deepcopy(model))
+    penv = make_policy_env(env, actor, chunk_gamma=0.99)
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        rollout = penv.env.rollout(2, penv.policy, break_when_any_done=False)
+    env.close()
+    path = rollout[DECODING_PATH_KEY]
+    recorded = rollout["vla_action", "log_probs"]
+    net = actor.model.denoiser.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(path_log_prob(net, path.reshape(-1)).reshape(recorded.shape), recorded, rtol=1e-5, atol=1e-4)
+    rollout.set(ADVANTAGE_KEY, torch.tensor([1.0, 1.0]))
+    loss_fn = PathPPOLoss(net, ratio_level="step")
+    out = loss_fn(rollout)
+    assert float(out["ratio_mean"]) == pytest.approx(1.0, abs=1e-4)
+    assert float(out["approx_kl"]) == pytest.approx(0.0, abs=1e-4)
+    optim = torch.optim.SGD(net.parameters(), lr=0.05)
+    out["loss_objective"].backward()
+    optim.step()
+    with torch.no_grad():
+        after = path_log_prob(net, path.reshape(-1)).reshape(recorded.shape)
+    assert (after > recorded).all()
+    with pytest.raises(ValueError, match="ratio_level"):
+        PathPPOLoss(net, ratio_level="chunk")
+
+
+# -- demo/online mix ---------------------------------------------------------------------------
+def test_demo_online_ratio_holds_in_sampled_batches(model, pick_demos):
+    utils = recipe_utils()
+    cfg = OmegaConf.create({"seed": 0, "demos": {"ratio": 0.25}, "replay_buffer": {"batch_size": 8, "capacity": 64}})
+    n_online, n_demo = utils.split_batch(cfg)
+    assert (n_online, n_demo) == (6, 2)
+    from mmada_rl.data import DemoBuffer
+
+    windows = utils.make_demo_windows(cfg, DemoBuffer.open(pick_demos), model)
+    online = utils.make_online_buffer(cfg)
+    L, K = model.layout.length, model.config.chunk_size
+    online.extend(TensorDict({SEQUENCE_KEY: torch.zeros(20, L, dtype=torch.long), ACTION_IS_PAD_KEY: torch.zeros(20, K, dtype=torch.bool),
+                              ADVANTAGE_KEY: torch.randn(20)}, [20]))
+    for _ in range(3):
+        batch = utils.mixed_batch(model, online.sample(), windows)
+        assert batch.shape == (8,)
+        assert int(batch[IS_DEMO_KEY].sum()) == 2
+        assert (batch[SEQUENCE_KEY][batch[IS_DEMO_KEY]] != 0).any()  # real demonstration sequences
+
+
+# -- the recipe as users run it -------------------------------------------------------------------
+COMMON = ["eval.episodes=1", "eval.max_episode_steps=10", "env.max_episode_steps=10", "collector.total_env_steps=30",
+          "collector.decisions_per_batch=2",
+          "checkpoint.interval=1", "checkpoint.keep=5"]
+
+
+@pytest.fixture(scope="module")
+def rwr_run(toy_pretrain_run, pick_demos, tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("finetune") / "rwr"
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return run_dir
+
+
+def test_rwr_recipe_collects_updates_evaluates_and_checkpoints(rwr_run):
+    history = json.loads((rwr_run / "eval_history.json").read_text())
+    assert [h["env_steps"] for h in history] == [0, 30]  # before training and at the end of the budget
+    assert all(0.0 <= h["success_once"] <= 1.0 and h["episodes"] == 1 for h in history)
+    assert history[-1]["updates"] == 2 * 3  # two updates per iteration, three iterations of two 5-step chunks
+    assert (rwr_run / "online_buffer").exists() and (rwr_run / "logs").exists()
+    ckpts = sorted(p.name for p in (rwr_run / "checkpoints").iterdir())
+    assert ckpts[-1] == "step_00000003"
+
+
+def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
+    import shutil
+
+    resumed = tmp_path / "resumed"
+    (resumed / "checkpoints").mkdir(parents=True)
+    shutil.copytree(rwr_run / "checkpoints" / "step_00000002", resumed / "checkpoints" / "step_00000002")
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={resumed}", f"demos.dir={pick_demos}", *COMMON,
+                      "checkpoint.resume=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "iteration 2, 20 env steps" in proc.stdout
+    history = json.loads((resumed / "eval_history.json").read_text())
+    assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
+
+
+def test_ppo_with_group_advantages_runs(toy_pretrain_run, pick_demos, tmp_path):
+    run_dir = tmp_path / "ppo"
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", "algo=ppo",
+                      "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
+                      "eval.episodes=0", "env.max_episode_steps=10", "collector.total_env_steps=40")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "40 env steps" in proc.stdout and "0 updates" not in proc.stdout
+
+
+def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    run_dir = tmp_path / "failing"
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
+                      "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2")
+    assert proc.returncode != 0
+    assert "collection failed after" in proc.stderr and "injected env failure" in proc.stderr
+    assert "checkpoint.resume=true" in proc.stderr
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))  # replay_buffer.capacity of toy.yaml
+    buffer.loads(run_dir / "online_buffer")
+    assert len(buffer) > 0 and SEQUENCE_KEY in buffer[:1].keys(True, True)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["algo=sac"], "algo='sac' is not a fine-tuning algorithm"),
+    (["pretrained=null"], "pretrained=null"),
+    (["demos.ratio=1.0"], "demos.ratio must lie in [0, 1)"),
+])
+def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
+    assert proc.returncode != 0 and message in proc.stderr
