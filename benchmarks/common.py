@@ -24,13 +24,13 @@ def machine() -> dict:
     }
 
 
-def write_results(name: str, payload: dict, markdown: str) -> tuple[Path, Path]:
+def write_results(name: str, payload: dict, markdown: str, directory: Path = RESULTS) -> tuple[Path, Path]:
     """Write ``results/NAME.json`` and ``results/NAME.md`` (the Markdown gets the command line)."""
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    directory.mkdir(parents=True, exist_ok=True)
     command = "python " + " ".join([os.path.relpath(sys.argv[0])] + sys.argv[1:])
     payload = {"command": command, "machine": machine(), **payload}
-    json_path = RESULTS / f"{name}.json"
-    md_path = RESULTS / f"{name}.md"
+    json_path = directory / f"{name}.json"
+    md_path = directory / f"{name}.md"
     json_path.write_text(json.dumps(payload, indent=2))
     md_path.write_text(f"{markdown.rstrip()}\n\nReproduce: `{command}` ({payload['machine']['date']}, "
                        f"{payload['machine']['cpu_count']} CPU cores, torch {payload['machine']['torch']}).\n")

@@ -285,3 +285,24 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
     assert proc.returncode != 0 and message in proc.stderr
+
+
+def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rwr_run, tmp_path):
+    spec = importlib.util.spec_from_file_location("compare", REPO / "benchmarks" / "compare" / "compare.py")
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    runs = tmp_path / "runs"
+    out = compare.run_dir(runs, "PickCube-v1", "mmada_rwr", 0)
+    fresh = compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "runs/pretrain_{task}_s{seed}", 5, 500)
+    assert "pretrained=runs/pretrain_PickCube-v1_s0" in fresh and "collector.total_env_steps=1000" in fresh
+    assert "checkpoint.resume=true" not in fresh
+    import shutil
+
+    shutil.copytree(rwr_run, out)  # a real (toy) fine-tuning run in the benchmark's layout
+    assert "checkpoint.resume=true" in compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "x", 5, 500)
+    assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results")]) == 0
+    table = (tmp_path / "results" / "compare.md").read_text()
+    assert "reward-weighted diffusion (ours)" in table and "| 30 |" in table
+    assert (tmp_path / "results" / "compare.png").stat().st_size > 0
+    payload = json.loads((tmp_path / "results" / "compare.json").read_text())
+    assert payload["results"]["PickCube-v1"]["mmada_rwr"]["histories"]["s0"][-1]["env_steps"] == 30

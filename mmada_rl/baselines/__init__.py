@@ -5,6 +5,11 @@
 * :class:`DiffusionPolicy` — Gaussian DDPM over the flattened chunk (Chi et al.),
   trained with TorchRL's ``DiffusionBCLoss`` (:class:`ChunkDiffusionBCLoss`).
 
+The reinforcement-learning baselines (PPO, SAC/RLPD, IQL on TorchRL's losses) build
+their networks with :mod:`mmada_rl.baselines.rl` (:func:`make_actor`,
+:func:`make_qvalue`, :func:`make_value`; :class:`OneStepChunkActor` lets
+``evaluate`` run them).
+
 Both are TorchRL ``VLAWrapperBase`` actors writing ``("vla_action", "chunk")``
 and ``"action"`` like :class:`~mmada_rl.policy.MMaDAActor`, so
 :func:`~mmada_rl.policy.make_policy_env` and :func:`~mmada_rl.evaluation.evaluate`
@@ -23,8 +28,22 @@ from mmada_rl.baselines.bc import BCConfig, BCPolicy, NormalizedChunkError, make
 from mmada_rl.baselines.diffusion_policy import ChunkDiffusionBCLoss, DiffusionPolicy, DiffusionPolicyConfig
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder, RandomShift, random_shift
 from mmada_rl.baselines.normalization import ChunkNormalizer, NormalizationStats, StateStandardizer
+from mmada_rl.baselines.rl import (
+    AGENT_CONFIG,
+    AGENT_WEIGHTS,
+    ObservationTrunk,
+    OneStepChunkActor,
+    RLAgent,
+    RLNetworkConfig,
+    make_actor,
+    make_qvalue,
+    make_value,
+    observation_keys,
+)
 
 __all__ = [
+    "AGENT_CONFIG",
+    "AGENT_WEIGHTS",
     "ALGOS",
     "BCConfig",
     "BCPolicy",
@@ -38,15 +57,23 @@ __all__ = [
     "NormalizationStats",
     "NormalizedChunkError",
     "ObservationEncoder",
+    "ObservationTrunk",
+    "OneStepChunkActor",
     "POLICY_CONFIG",
     "POLICY_WEIGHTS",
+    "RLAgent",
+    "RLNetworkConfig",
     "RandomShift",
     "StateStandardizer",
     "is_policy_dir",
     "load_policy",
+    "make_actor",
     "make_bc_loss",
     "make_loss",
     "make_policy",
+    "make_qvalue",
+    "make_value",
+    "observation_keys",
     "random_shift",
 ]
 

@@ -25,4 +25,5 @@ def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, p
 
         print(f"{prefix}collecting {collect_episodes - have} planner demonstrations into {path}")
         collect(path, env, episodes=collect_episodes)
-    return DemoBuffer.open(path, task=env.task, control_mode=env.control_mode, obs_mode="rgb", image_size=env.image_size)
+    return DemoBuffer.open(path, task=env.task, control_mode=env.control_mode, obs_mode=env.obs_mode,
+                           image_size=env.image_size if env.obs_mode == "rgb" else None)

@@ -1,0 +1,173 @@
+"""Offline-to-online comparison: our two fine-tuning algorithms against the RL and imitation baselines.
+
+    # run (or continue) every method on one task, one training seed, a 50k env-step budget
+    python benchmarks/compare/compare.py run --task PickCube-v1 --seeds 0 --budget 50000 \\
+        --pretrained runs/pretrain_{task}_s{seed}
+    # only some methods, shorter
+    python benchmarks/compare/compare.py run --task PickCube-v1 --methods mmada_rwr mmada_ppo --budget 5000 ...
+    # tables and curves from whatever runs exist
+    python benchmarks/compare/compare.py report --task PickCube-v1 PushCube-v1
+
+Every method is one of the project's recipes run as a subprocess into
+``--runs/{task}/{method}/s{seed}`` (default ``runs/compare``); a run directory
+that holds checkpoints but no ``final.json`` is resumed (``checkpoint.resume=true``),
+so an interrupted benchmark continues where it stopped. Each recipe evaluates on
+the same fixed seeds (``1_000_000 + i``, disjoint from every training seed) and
+writes ``eval_history.json`` (``success_once`` against online env steps); the
+imitation baselines train on the demonstrations only and are drawn as a level
+line at env step 0.
+
+``report`` writes ``benchmarks/results/compare.{json,md,png}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from common import RESULTS, markdown_table, write_results  # noqa: E402
+
+#: method -> (label, observations, recipe command, whether it uses online interaction)
+METHODS = {
+    "mmada_rwr": ("MMaDA-VLA + reward-weighted diffusion (ours)", "rgb+proprio",
+                  ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr"], True),
+    "mmada_ppo": ("MMaDA-VLA + path-likelihood PPO (ours)", "rgb+proprio",
+                  ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo"], True),
+    "ppo_rgb": ("PPO from scratch", "rgb+proprio",
+                ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=ppo"], True),
+    "sac_rlpd_state": ("SAC + demos (RLPD)", "privileged state (reference)",
+                       ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=sac"], True),
+    "iql_state": ("IQL offline -> online", "privileged state (reference)",
+                  ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=iql"], True),
+    "bc": ("BC (demos only)", "rgb+proprio", ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc"], False),
+    "diffusion_policy": ("Diffusion Policy (demos only)", "rgb+proprio",
+                         ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy"], False),
+}
+
+
+def run_dir(runs: Path, task: str, method: str, seed: int) -> Path:
+    return runs / task / method / f"s{seed}"
+
+
+def command(method: str, task: str, seed: int, budget: int, out: Path, pretrained: str, eval_episodes: int,
+            eval_every: int) -> list[str]:
+    _, _, recipe, online = METHODS[method]
+    cmd = [sys.executable, *recipe, f"env.task={task}", f"seed={seed}", f"run_dir={out}", f"eval.episodes={eval_episodes}"]
+    if method.startswith("mmada"):
+        cmd += [f"pretrained={pretrained.format(task=task, seed=seed)}", f"collector.total_env_steps={budget}",
+                f"eval.interval_env_steps={eval_every}", f"demos.dir=data/{task}"]
+    elif online:
+        cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
+    if (out / "checkpoints").exists():
+        cmd.append("checkpoint.resume=true")
+    return cmd
+
+
+def run(args: argparse.Namespace) -> int:
+    for task in args.task:
+        for seed in args.seeds:
+            for method in args.methods:
+                out = run_dir(args.runs, task, method, seed)
+                if (out / "final.json").exists():
+                    print(f"[compare] {task} {method} s{seed}: done already ({out})")
+                    continue
+                cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every)
+                print(f"[compare] {task} {method} s{seed}: {' '.join(cmd[1:])}", flush=True)
+                proc = subprocess.run(cmd, cwd=ROOT)
+                if proc.returncode != 0:
+                    print(f"[compare] {method} exited with {proc.returncode}; rerun the same command to resume it.")
+                    return proc.returncode
+    return 0
+
+
+def history_of(out: Path, online: bool) -> list[dict]:
+    """Evaluation records of a run: ``eval_history.json``, or the imitation recipe's final evaluation at env step 0."""
+    if (out / "eval_history.json").exists():
+        return json.loads((out / "eval_history.json").read_text())
+    if not online and (out / "final.json").exists():
+        final = json.loads((out / "final.json").read_text())
+        if "eval/success_once" in final:
+            return [{"env_steps": 0, "success_once": final["eval/success_once"], "episodes": final.get("eval/episodes"),
+                     "success_once_ci_low": final.get("eval/success_once_ci_low"),
+                     "success_once_ci_high": final.get("eval/success_once_ci_high")}]
+    return []
+
+
+def report(args: argparse.Namespace) -> int:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results, rows = {}, []
+    fig, axes = plt.subplots(1, len(args.task), figsize=(6 * len(args.task), 4), squeeze=False)
+    for ax, task in zip(axes[0], args.task):
+        for method, (label, obs, _, online) in METHODS.items():
+            seeds = sorted(p.name for p in (args.runs / task / method).glob("s*")) if (args.runs / task / method).exists() else []
+            histories = {s: history_of(args.runs / task / method / s, online) for s in seeds}
+            histories = {s: h for s, h in histories.items() if h}
+            if not histories:
+                continue
+            results.setdefault(task, {})[method] = {"label": label, "observations": obs, "histories": histories}
+            for s, h in histories.items():
+                steps = [r["env_steps"] for r in h]
+                succ = [r["success_once"] for r in h]
+                if online:
+                    ax.plot(steps, succ, marker="o", label=f"{label} ({s})")
+                else:
+                    ax.axhline(succ[-1], linestyle="--", label=f"{label} ({s})")
+                first, last = h[0], h[-1]
+                ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
+                      if last.get("success_once_ci_low") is not None else "")
+                rows.append([task, label, obs, s, f"{first['success_once']:.2f}" if online else "-",
+                             f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
+        ax.set_title(task)
+        ax.set_xlabel("online env steps")
+        ax.set_ylabel("success_once (greedy, fixed eval seeds)")
+        ax.set_ylim(-0.02, 1.02)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    if not rows:
+        print(f"[compare] no finished evaluations under {args.runs} for {args.task}; run `compare.py run` first.")
+        return 1
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out / "compare.png", dpi=120)
+    header = ["task", "method", "observations", "seed", "success at 0 env steps", "final success_once [95% CI]",
+              "env steps", "eval episodes"]
+    table = markdown_table(header, rows)
+    write_results("compare", {"runs": str(args.runs), "results": results},
+                  f"# Offline-to-online comparison\n\n{table}\n\n![curves](compare.png)\n", directory=args.out)
+    print(table)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run (or resume) the methods")
+    p.add_argument("--task", nargs="+", default=["PickCube-v1"])
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    p.add_argument("--seeds", nargs="+", type=int, default=[0])
+    p.add_argument("--budget", type=int, default=50_000, help="online env steps per run")
+    p.add_argument("--eval-every", type=int, default=5_000, help="env steps between evaluations")
+    p.add_argument("--eval-episodes", type=int, default=20)
+    p.add_argument("--pretrained", default="runs/pretrain_{task}_s{seed}",
+                   help="pretrained MMaDA-VLA run per task and seed ({task}, {seed} are filled in)")
+    p.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
+    p.set_defaults(func=run)
+    r = sub.add_parser("report", help="tables and curves from the existing runs")
+    r.add_argument("--task", nargs="+", default=["PickCube-v1"])
+    r.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
+    r.add_argument("--out", type=Path, default=RESULTS, help="where compare.{json,md,png} go")
+    r.set_defaults(func=report)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
