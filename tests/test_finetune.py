@@ -69,6 +69,36 @@ def test_chunk_reward_is_the_discounted_sum_of_the_executed_steps():
         ChunkReward(gamma=0.0)
 
 
+def test_chunk_reward_in_a_batch_locked_env_sums_only_the_steps_each_env_ran():
+    """SerialEnv (like ParallelEnv) keeps a finished env's last reward in the skipped slots; they must not count."""
+    from torchrl.envs import SerialEnv
+
+    lengths = (7, 12)  # env 0 ends inside the second chunk, env 1 runs on
+    torch.manual_seed(0)
+    actions = torch.rand(2, 2, 5, 7) * 2 - 1  # (chunk, env, K, A)
+
+    def factory(i):
+        return lambda: make_env("PushCube-v1", max_episode_steps=lengths[i], train_seed=i)
+
+    expected = torch.zeros(2, 2)
+    for i in range(2):  # each env alone, same seeds and actions
+        single = TransformedEnv(factory(i)(), ChunkReward(gamma=0.9))
+        td = single.reset()
+        for c in range(2):
+            td = single.step(td.set("action", actions[c, i]))
+            expected[c, i] = td["next", "reward"].reshape(())
+            td = step_mdp(td)
+        single.close()
+    batched = TransformedEnv(SerialEnv(2, [factory(0), factory(1)]), ChunkReward(gamma=0.9))
+    td = batched.reset()
+    for c in range(2):
+        td = batched.step(td.set("action", actions[c]))
+        torch.testing.assert_close(td["next", "reward"].reshape(2), expected[c])
+        td = step_mdp(td)
+    assert td["done"].reshape(-1).tolist() == [True, False]
+    batched.close()
+
+
 def test_train_seed_schedule_repeats_each_initial_state_group_size_times():
     env = make_env("PushCube-v1", max_episode_steps=2, train_seed=10, group_size=2)
     rollout = env.rollout(8, break_when_any_done=False)

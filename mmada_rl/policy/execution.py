@@ -30,7 +30,7 @@ from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.transforms import MultiAction, Transform
 
 from mmada_rl.envs.maniskill import EnvConfig, make_env
-from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY
+from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, STEP_KEY
 from mmada_rl.policy.actor import MMaDAActor, check_execute_steps
 
 __all__ = ["ChunkReward", "PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
@@ -108,8 +108,14 @@ class ChunkReward(MultiAction):
     TorchRL's ``MultiAction(stack_rewards=False)`` keeps only the last step's
     reward, which loses every dense reward but one per chunk.
 
+    Batch-locked envs (``SerialEnv``/``ParallelEnv``) stop stepping an env after its
+    ``done`` but leave that step's reward in the remaining slots of the stack; the
+    step counter (TorchRL's ``StepCounter``, which ``make_env`` adds) tells how many
+    steps each env ran, and only those are summed.
+
     Args:
         gamma: per-step discount inside the chunk.
+        step_count_key: the step counter's key.
 
     Examples:
         >>> env = TransformedEnv(make_env("PushCube-v1"), ChunkReward(gamma=0.99))
@@ -118,14 +124,14 @@ class ChunkReward(MultiAction):
         torch.Size([1])
     """
 
-    def __init__(self, gamma: float = 1.0, **kwargs) -> None:
+    def __init__(self, gamma: float = 1.0, *, step_count_key: str = STEP_KEY, **kwargs) -> None:
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma!r}.")
         if kwargs.get("stack_rewards") is False:
             raise ValueError("ChunkReward sums the stacked rewards; stack_rewards cannot be False.")
         kwargs["stack_rewards"] = True
         super().__init__(**kwargs)
-        self.gamma = float(gamma)
+        self.gamma, self.step_count_key = float(gamma), step_count_key
 
     def _transform_reward_spec(self, reward_spec, ndim):
         return reward_spec  # one (summed) reward per chunk, shaped as a single step's
@@ -133,13 +139,32 @@ class ChunkReward(MultiAction):
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict = super()._step(tensordict, next_tensordict)  # rewards stacked along the chunk dim
         dim = next_tensordict.batch_dims + self.dim - 1  # where MultiAction stacked the steps
+        executed = self._executed(tensordict, next_tensordict)  # (*B,) or None
         for key in self.parent.reward_keys:
-            stacked = next_tensordict.get(key)  # (*B, n, *R): executed steps, then zero-filled skipped ones
+            stacked = next_tensordict.get(key)  # (*B, n, *R)
             n = stacked.shape[dim]
-            discount = self.gamma ** torch.arange(n, dtype=stacked.dtype, device=stacked.device)
-            discount = discount.view(n, *([1] * (stacked.ndim - dim - 1)))
+            trailing = [1] * (stacked.ndim - dim - 1)
+            steps = torch.arange(n, device=stacked.device)
+            discount = (self.gamma ** steps.to(stacked.dtype)).view(n, *trailing)
+            if executed is not None:
+                # batch-locked envs (SerialEnv, ParallelEnv) skip the steps after a done but repeat
+                # that step's reward in the stack: keep only the steps that ran
+                valid = steps < executed.to(stacked.device).unsqueeze(-1)  # (*B, n)
+                stacked = torch.where(valid.view(*valid.shape, *trailing), stacked, torch.zeros_like(stacked))
             next_tensordict.set(key, (stacked * discount).sum(dim))
         return next_tensordict
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # the step counter at the decision, before MultiAction runs the inner steps
+        self._start_count = tensordict.get(self.step_count_key, None)
+        return super()._inv_call(tensordict)
+
+    def _executed(self, tensordict: TensorDictBase | None, next_tensordict: TensorDictBase) -> torch.Tensor | None:
+        """Inner steps each env ran in this chunk, from the step counter (``None`` when unavailable)."""
+        before, after = getattr(self, "_start_count", None), next_tensordict.get(self.step_count_key, None)
+        if before is None or after is None:
+            return None
+        return (after - before.to(after.device)).reshape(next_tensordict.batch_size)
 
 
 class StepLog(Transform):
