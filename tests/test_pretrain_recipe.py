@@ -83,7 +83,7 @@ def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
     """The VQ-vs-bins ablation: ``tokenizers.action_type=bins`` with the bins' own options."""
     run_dir = tmp_path / "bins"
     proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=2",
-                      "eval.episodes=0", "tokenizers.action_type=bins", "~tokenizers.action", "+tokenizers.action={num_bins:32}")
+                      "eval.episodes=0", "tokenizers.action_type=bins", "tokenizers.action.bins.num_bins=32")
     assert proc.returncode == 0, proc.stderr[-3000:]
     config = json.loads((run_dir / "tokenizers" / "action" / "config.json").read_text())
     assert config["type"] == "UniformBinActionTokenizer" and config["config"]["num_bins"] == 32

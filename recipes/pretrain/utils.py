@@ -32,6 +32,11 @@ def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Token
     """Load fitted tokenizers (``tokenizers.dir``) or fit them on the buffer into ``run_dir/tokenizers``."""
     tcfg = OmegaConf.to_container(cfg.tokenizers)
     directory = tcfg.pop("dir")
+    options = tcfg["action"]
+    if tcfg["action_type"] not in options:
+        raise ValueError(f"tokenizers.action_type={tcfg['action_type']!r} has no options under tokenizers.action "
+                         f"(has {sorted(options)}); add tokenizers.action.{tcfg['action_type']}={{...}}.")
+    tcfg["action"] = options[tcfg["action_type"]]
     if directory is None:
         directory = run_dir / "tokenizers"
         if not (directory / "action").exists():

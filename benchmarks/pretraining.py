@@ -1,0 +1,107 @@
+"""Pretraining results: evaluations and learning curves of `recipes/pretrain` runs, side by side.
+
+    # the runs (each a recipes/pretrain/pretrain.py run directory), then the report
+    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_bins_s0
+    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PickCube-v1 run_dir=runs/pick_bins_s0
+    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_vq_s0 \\
+        tokenizers.action_type=vq optim.total_steps=4000
+    python benchmarks/pretraining.py runs/push_bins_s0 runs/pick_bins_s0 runs/push_vq_s0
+
+For every run: its task, action tokenizer, steps trained, every evaluation
+(``success_once`` with its 95% Wilson interval on the fixed evaluation seeds) and
+the action-token accuracy at masked positions along training (TorchRL CSV logs).
+Writes ``benchmarks/results/pretraining.{json,md,png}``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, markdown_table, write_results  # noqa: E402
+
+
+def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
+    path = run / "logs" / "scalars" / f"{name}.csv"
+    if not path.exists():
+        return []
+    with path.open() as f:
+        return [(int(float(step)), float(value)) for step, value in csv.reader(f)]
+
+
+def summarize(run: Path) -> dict:
+    ckpts = sorted((run / "checkpoints").glob("step_*")) if (run / "checkpoints").exists() else []
+    if not ckpts:
+        raise FileNotFoundError(f"{run} holds no checkpoints: not a pretraining run directory.")
+    config = json.loads((ckpts[-1] / "config.json").read_text())
+    evals = {step: {"success_once": v} for step, v in read_scalar(run, "eval/success_once")}
+    for key in ("success_once_ci_low", "success_once_ci_high", "episodes", "success_at_end", "decode_ms_mean"):
+        for step, v in read_scalar(run, f"eval/{key}"):
+            evals.setdefault(step, {})[key] = v
+    return {
+        "run": str(run),
+        "task": config["env"]["task"],
+        "action_tokenizer": config["tokenizers"]["action_type"],
+        "denoiser": config["model"]["denoiser"],
+        "steps": int(ckpts[-1].name.split("_")[-1]),
+        "planned_steps": config["optim"]["total_steps"],
+        "evaluations": [{"step": s, **e} for s, e in sorted(evals.items())],
+        "action_accuracy": read_scalar(run, "train/action_accuracy"),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    runs = [summarize(r) for r in args.runs]
+
+    rows = []
+    for r in runs:
+        acc = r["action_accuracy"]
+        last_acc = sum(v for _, v in acc[-10:]) / max(1, len(acc[-10:]))
+        evals = "; ".join(
+            f"step {e['step']}: {e['success_once']:.2f} [{e.get('success_once_ci_low', float('nan')):.2f}, "
+            f"{e.get('success_once_ci_high', float('nan')):.2f}] ({int(e.get('episodes', 0))} ep)"
+            for e in r["evaluations"]) or "not evaluated"
+        rows.append([r["task"], r["action_tokenizer"], r["denoiser"], f"{r['steps']} / {r['planned_steps']}",
+                     f"{last_acc:.2f}", evals])
+    header = ["task", "action tokens", "denoiser", "steps (trained / planned)", "action-token accuracy (last 10 logs)",
+              "success_once [95% CI]"]
+    table = markdown_table(header, rows)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    for r in runs:
+        label = f"{r['task']} {r['action_tokenizer']}"
+        if r["action_accuracy"]:
+            steps, values = zip(*r["action_accuracy"])
+            ax[0].plot(steps, values, label=label, alpha=0.8)
+        if r["evaluations"]:
+            ax[1].plot([e["step"] for e in r["evaluations"]], [e["success_once"] for e in r["evaluations"]], marker="o", label=label)
+    ax[0].set_xlabel("pretraining step")
+    ax[0].set_ylabel("action-token accuracy (masked)")
+    ax[1].set_xlabel("pretraining step")
+    ax[1].set_ylabel("success_once")
+    ax[1].set_ylim(-0.02, 1.02)
+    for a in ax:
+        a.legend(fontsize=7)
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out / "pretraining.png", dpi=120)
+    write_results("pretraining", {"runs": runs}, f"# Pretraining results\n\n{table}\n\n![curves](pretraining.png)\n",
+                  directory=args.out)
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
