@@ -179,6 +179,10 @@ def test_demo_rows_take_demo_weight_and_online_rows_need_an_advantage(model, toy
     torch.testing.assert_close(weights, torch.tensor([2.0, float(torch.exp(torch.tensor(-2.0)))]))
     with pytest.raises(KeyError, match="advantage"):
         loss_fn.sample_weights(td.exclude(ADVANTAGE_KEY), 2, torch.device("cpu"))
+    # standardised over the online rows of the batch: temperature in units of their std
+    online = TensorDict({ADVANTAGE_KEY: torch.tensor([0.1, 0.2, 0.3]), IS_DEMO_KEY: torch.zeros(3, dtype=torch.bool)}, [3])
+    std_fn = RewardWeightedDiffusionLoss(model.denoiser, weighting="signed", temperature=1.0, standardize_advantage=True)
+    torch.testing.assert_close(std_fn.sample_weights(online, 3, torch.device("cpu")), torch.tensor([-1.0, 0.0, 1.0]))
 
 
 def test_kl_penalty_is_zero_at_the_reference_and_grows_when_the_policy_moves(model, toy_pretrain_run):

@@ -35,6 +35,10 @@ from common import RESULTS, markdown_table, write_results  # noqa: E402
 METHODS = {
     "mmada_rwr": ("MMaDA-VLA + reward-weighted diffusion (ours)", "rgb+proprio",
                   ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr"], True),
+    "mmada_rwr_conservative": ("MMaDA-VLA + reward-weighted diffusion, conservative (ours)", "rgb+proprio",
+                               ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr",
+                                "collector.temperature=0.5", "loss.rwr.standardize_advantage=true",
+                                "loss.rwr.temperature=0.5", "loss.rwr.kl_coef=0.5"], True),
     "mmada_ppo": ("MMaDA-VLA + path-likelihood PPO (ours)", "rgb+proprio",
                   ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo"], True),
     "ppo_rgb": ("PPO from scratch", "rgb+proprio",

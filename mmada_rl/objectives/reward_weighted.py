@@ -70,6 +70,9 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         demo_weight: weight of demonstration samples.
         normalize_weights: divide the weights by their mean absolute value over the
             batch (keeps the step size independent of the advantage scale).
+        standardize_advantage: standardise the online rows' advantages over the batch
+            (zero mean, unit std) before weighting, so ``temperature`` is in units of
+            the batch's advantage spread rather than of the reward.
         reference: a frozen reference denoiser for the KL penalty (copied, never trained).
         kl_coef: weight of ``loss_kl`` (needs ``reference``).
         **kwargs: :class:`MaskedDiffusionLoss` options (schedule, kernel, goal_weight, ...).
@@ -105,6 +108,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         max_negative_nll: float = 5.0,
         demo_weight: float = 1.0,
         normalize_weights: bool = False,
+        standardize_advantage: bool = False,
         reference: MaskedDiffusionDenoiser | TensorDictModule | None = None,
         kl_coef: float = 0.0,
         **kwargs,
@@ -122,6 +126,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         self.weighting, self.temperature, self.max_weight = weighting, float(temperature), float(max_weight)
         self.max_negative_nll, self.demo_weight = float(max_negative_nll), float(demo_weight)
         self.normalize_weights, self.kl_coef = bool(normalize_weights), float(kl_coef)
+        self.standardize_advantage = bool(standardize_advantage)
         self.reference = None
         if reference is not None and kl_coef > 0:
             self.reference = copy.deepcopy(unwrap_denoiser(reference)).requires_grad_(False).eval()
@@ -145,6 +150,10 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
                 raise KeyError(f"online samples need {self.tensor_keys.advantage!r}; only demonstrations may omit it.")
             advantage = torch.zeros(batch, device=device)
         advantage = advantage.reshape(batch).float().to(device)
+        online = ~is_demo
+        if self.standardize_advantage and online.sum() > 1:
+            mean, std = advantage[online].mean(), advantage[online].std().clamp_min(1e-6)
+            advantage = torch.where(online, (advantage - mean) / std, advantage)
         weights = advantage_weights(advantage, self.weighting, self.temperature, self.max_weight)
         weights = torch.where(is_demo, torch.full_like(weights, self.demo_weight), weights)
         if self.normalize_weights:
