@@ -127,7 +127,7 @@ def report(args: argparse.Namespace) -> int:
                 first, last = h[0], h[-1]
                 ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
                       if last.get("success_once_ci_low") is not None else "")
-                rows.append([task, label, obs, s, f"{first['success_once']:.2f}" if online else "-",
+                rows.append([task, label, obs, s, f"{first['success_once']:.2f} @ {first['env_steps']}" if online else "-",
                              f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
         ax.set_title(task)
         ax.set_xlabel("online env steps")
@@ -141,7 +141,7 @@ def report(args: argparse.Namespace) -> int:
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / "compare.png", dpi=120)
-    header = ["task", "method", "observations", "seed", "success at 0 env steps", "final success_once [95% CI]",
+    header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
     write_results("compare", {"runs": str(args.runs), "results": results},

@@ -46,6 +46,7 @@ from utils import (
     check_config,
     decision_rows,
     executed_steps,
+    exploration_sampler,
     load_pretrained,
     make_collector,
     make_demo_windows,
@@ -66,6 +67,7 @@ BUFFER_DIR = "online_buffer"
 
 
 def run_eval(cfg: DictConfig, model, env_steps: int, updates: int, start: float) -> dict:
+    """Greedy evaluation with the model's own sampler (not the exploration one)."""
     result = evaluate(model, cfg.env.task, episodes=int(cfg.eval.episodes), execute_steps=cfg.collector.execute_steps,
                       control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps, progress=False)
     return {
@@ -111,6 +113,7 @@ def main(cfg: DictConfig) -> None:
     config = OmegaConf.to_container(cfg, resolve=True)
 
     model = load_pretrained(cfg)
+    eval_sampler, explore_sampler = model.sampler, exploration_sampler(cfg, model)
     demos = open_demo_buffer(cfg, model)
     value_op, value_optim = make_value(cfg, model, demos)
     gae = make_gae(cfg, value_op, model) if cfg.advantage.estimator == "gae" else None
@@ -163,13 +166,16 @@ def main(cfg: DictConfig) -> None:
         while env_steps < total:
             t0 = time.perf_counter()
             model.eval()  # sampling and the recorded paths without dropout
+            model.sampler = explore_sampler
             try:
                 batch = next(batches)
             except Exception as err:  # an env (or worker) failed: keep what was learned and collected
+                model.sampler = eval_sampler
                 path = checkpoint()
                 sys.exit(f"{PREFIX} collection failed after {env_steps} env steps: {type(err).__name__}: {err}\n"
                          f"{PREFIX} saved checkpoint {path} and the online buffer ({len(online)} rows) in {run_dir / BUFFER_DIR}; "
                          "fix the cause and rerun with checkpoint.resume=true.")
+            model.sampler = eval_sampler  # evaluation and checkpoints keep the model's own sampler
             steps = int(executed_steps(batch).sum())
             env_steps += steps
             pbar.update(steps)

@@ -71,11 +71,19 @@ def check_config(cfg: DictConfig) -> None:
 # -- policy -------------------------------------------------------------------------
 def load_pretrained(cfg: DictConfig) -> MMaDAModel:
     """The pretrained policy (a pretraining run directory, a checkpoint, or a saved model)."""
-    model = MMaDAModel.load(resolve_model_dir(cfg.pretrained), device=cfg.device)
+    return MMaDAModel.load(resolve_model_dir(cfg.pretrained), device=cfg.device)
+
+
+def exploration_sampler(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionSampler:
+    """The model's sampler at ``collector.temperature``, used while collecting only.
+
+    Evaluation keeps the model's own sampler: greedy decoding commits positions in
+    order of their (temperature-scaled) confidence, so the temperature changes
+    greedy chunks too, and every evaluation must use the same one.
+    """
     sampler = asdict(model.sampler.config)
     sampler["temperature"] = float(cfg.collector.temperature)
-    model.sampler = MaskedDiffusionSampler(SamplerConfig(**sampler))
-    return model
+    return MaskedDiffusionSampler(SamplerConfig(**sampler))
 
 
 def make_env_config(cfg: DictConfig, model: MMaDAModel) -> EnvConfig:
