@@ -8,6 +8,7 @@ from mmada_rl.training.checkpoint import (
     save_checkpoint,
 )
 from mmada_rl.training.optim import make_optimizer, make_scheduler
+from mmada_rl.training.run import start_run
 
 __all__ = [
     "Checkpoint",
@@ -18,4 +19,5 @@ __all__ = [
     "make_scheduler",
     "resume_training",
     "save_checkpoint",
+    "start_run",
 ]

@@ -30,15 +30,14 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import hydra
-import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from mmada_rl.baselines.rl import RLAgent
 from mmada_rl.envs.maniskill import make_env
+from mmada_rl.training import start_run
 from online_utils import (PREFIX, EvalHistory, Progress, check_config, evaluate, make_collector, make_demo_replay, make_demos,
                           make_env_config, make_logger, make_loss, make_networks, make_online_replay, make_optim, make_updater,
                           obs_mode, resume, save)
@@ -47,12 +46,7 @@ from online_utils import (PREFIX, EvalHistory, Progress, check_config, evaluate,
 @hydra.main(config_path="config", config_name="online_toy", version_base=None)
 def main(cfg: DictConfig) -> None:
     check_config(cfg)
-    if cfg.num_threads:
-        torch.set_num_threads(int(cfg.num_threads))
-    torch.manual_seed(int(cfg.seed))
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config = OmegaConf.to_container(cfg, resolve=True)
+    run_dir, config = start_run(cfg)
 
     env_cfg = make_env_config(cfg)
     demos = make_demos(cfg, env_cfg)

@@ -35,11 +35,11 @@ from pathlib import Path
 
 import hydra
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from mmada_rl.evaluation import evaluate
-from mmada_rl.training import resume_training, save_checkpoint
+from mmada_rl.training import resume_training, save_checkpoint, start_run
 from utils import (
     PREFIX,
     EpisodeGroups,
@@ -104,13 +104,8 @@ def gradient_step(cfg, model, optimizer, losses) -> float:
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
-    if cfg.num_threads:
-        torch.set_num_threads(int(cfg.num_threads))
     check_config(cfg)
-    torch.manual_seed(int(cfg.seed))
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config = OmegaConf.to_container(cfg, resolve=True)
+    run_dir, config = start_run(cfg)
 
     model = load_pretrained(cfg)
     eval_sampler, explore_sampler = model.sampler, exploration_sampler(cfg, model)

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import hydra
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from mmada_rl.training import resume_training, save_checkpoint
+from mmada_rl.training import resume_training, save_checkpoint, start_run
 from utils import (
     loss_inputs,
     make_data,
@@ -45,12 +45,7 @@ def evaluate(cfg: DictConfig, model, step: int) -> dict:
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
-    if cfg.num_threads:
-        torch.set_num_threads(int(cfg.num_threads))
-    torch.manual_seed(int(cfg.seed))
-    run_dir = Path(cfg.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    config = OmegaConf.to_container(cfg, resolve=True)
+    run_dir, config = start_run(cfg)
 
     buffer = make_demo_buffer(cfg)
     tokenizers = make_tokenizers(cfg, buffer, run_dir)
