@@ -24,6 +24,7 @@ from mmada_rl.evaluation import EVAL_SEED_BASE, resolve_model_dir
 from mmada_rl.envs.maniskill import WORKER_SEED_STRIDE
 from mmada_rl.keys import (
     ACTION_IS_PAD_KEY,
+    ACTION_TOKENS_KEY,
     ADVANTAGE_KEY,
     GOAL_IMAGE_KEY,
     GROUP_KEY,
@@ -46,8 +47,6 @@ from mmada_rl.training.demos import open_demos
 PREFIX = "[finetune]"
 ALGOS = ("rwr", "ppo")
 ESTIMATORS = ("gae", "group")
-#: the sampled action tokens of a decision (VLAWrapperBase's ``("vla_action", "tokens")``)
-TOKENS_KEY = ("vla_action", "tokens")
 #: what every training row of the online buffer holds
 ROW_KEYS = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, VALUE_TARGET_KEY, IMAGE_KEY, STATE_KEY, DECODING_PATH_KEY]
 
@@ -171,7 +170,7 @@ def decision_rows(model: MMaDAModel, batch: TensorDictBase) -> TensorDict:
     window = flat.select(IMAGE_KEY, STATE_KEY, INSTRUCTION_KEY, strict=False)
     if model.config.predict_goal:
         window.set(GOAL_IMAGE_KEY, flat.get(("next", *IMAGE_KEY)))
-    ids = model.sequence(window, action_tokens=flat.get(TOKENS_KEY))
+    ids = model.sequence(window, action_tokens=flat.get(ACTION_TOKENS_KEY))
     steps = executed_steps(flat)  # (N,)
     is_pad = torch.arange(model.config.chunk_size)[None, :] >= steps[:, None]  # (N, K)
     rows = TensorDict(
