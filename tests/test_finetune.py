@@ -150,7 +150,7 @@ def _action_log_likelihood(loss_fn, td) -> torch.Tensor:
     return out / torch.zeros(2).index_add(0, s.rows[is_action], torch.ones(int(is_action.sum())))
 
 
-@pytest.mark.parametrize("weighting", ["signed", "exp"])
+@pytest.mark.parametrize("weighting", ["signed", "exp", "binary"])
 def test_one_update_favours_high_advantage_tokens(model, toy_pretrain_run, weighting):
     import copy
 
@@ -183,6 +183,32 @@ def test_demo_rows_take_demo_weight_and_online_rows_need_an_advantage(model, toy
     online = TensorDict({ADVANTAGE_KEY: torch.tensor([0.1, 0.2, 0.3]), IS_DEMO_KEY: torch.zeros(3, dtype=torch.bool)}, [3])
     std_fn = RewardWeightedDiffusionLoss(model.denoiser, weighting="signed", temperature=1.0, standardize_advantage=True)
     torch.testing.assert_close(std_fn.sample_weights(online, 3, torch.device("cpu")), torch.tensor([-1.0, 0.0, 1.0]))
+
+
+def test_binary_weights_keep_only_positive_advantages():
+    from mmada_rl.objectives.reward_weighted import advantage_weights
+
+    adv = torch.tensor([-2.0, 0.0, 0.3, 50.0])
+    torch.testing.assert_close(advantage_weights(adv, "binary", temperature=0.1), torch.tensor([0.0, 0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="weighting"):
+        advantage_weights(adv, "softmax")
+
+
+def test_episode_returns_as_advantages_wait_for_the_episode_to_end():
+    """estimator=return: every decision of an episode gets that episode's return, once it has ended."""
+    groups = recipe_utils().EpisodeGroups(1, relative=False)
+
+    def batch(rewards, dones, seeds):
+        n = len(rewards)
+        return TensorDict({("next", "reward"): torch.tensor(rewards).reshape(n, 1), ("next", "done"): torch.tensor(dones).reshape(n, 1),
+                           GROUP_KEY: torch.tensor(seeds).reshape(n, 1)}, [n])
+
+    first = groups.add(batch([0.0, 0.0, 1.0, 0.0], [False, False, True, False], [5, 5, 5, 6]))
+    assert len(first) == 1 and first[0].shape == (3,)
+    assert first[0].get(ADVANTAGE_KEY).tolist() == [1.0, 1.0, 1.0]  # a successful episode (sparse reward)
+    assert groups.add(batch([0.0, 0.0], [False, False], [6, 6])) == []  # episode 2 still running
+    (second,) = groups.add(batch([0.0], [True], [6]))
+    assert second.shape == (4,) and second.get(ADVANTAGE_KEY).tolist() == [0.0] * 4  # failed: filtered out by binary weights
 
 
 def test_kl_penalty_is_zero_at_the_reference_and_grows_when_the_policy_moves(model, toy_pretrain_run):
@@ -295,6 +321,15 @@ def test_ppo_with_group_advantages_runs(toy_pretrain_run, pick_demos, tmp_path):
                       "eval.episodes=0", "env.max_episode_steps=10", "collector.total_env_steps=40")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "40 env steps" in proc.stdout and "0 updates" not in proc.stdout
+
+
+def test_filtered_self_imitation_runs(toy_pretrain_run, pick_demos, tmp_path):
+    run_dir = tmp_path / "rft"
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", "env.reward=sparse",
+                      "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
+                      "eval.episodes=0", "env.max_episode_steps=10", "collector.total_env_steps=30")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "30 env steps" in proc.stdout and "0 updates" not in proc.stdout
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):

@@ -1,11 +1,13 @@
-"""Chunk-level advantages for fine-tuning: group-relative Monte-Carlo returns.
+"""Chunk-level advantages for fine-tuning: group-relative or plain Monte-Carlo episode returns.
 
 A decision is one executed chunk (a macro-action). Learned-value advantages use
 TorchRL's :class:`~torchrl.objectives.value.GAE` directly on the chunk-level
 transitions, with the discount ``gamma ** k`` of ``k`` executed steps (the
 chunk's reward is already its discounted sum, :class:`~mmada_rl.policy.execution.ChunkReward`).
 The critic-free alternative below compares rollouts that started from the same
-initial state, as TorchRL's ``vla_grpo`` recipe (SimpleVLA-RL) does.
+initial state, as TorchRL's ``vla_grpo`` recipe (SimpleVLA-RL) does; or, with
+no baseline at all, takes each episode's return as the advantage of its decisions
+(with a sparse success reward and binary weights: imitate the successful rollouts).
 """
 from __future__ import annotations
 

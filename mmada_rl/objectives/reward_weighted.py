@@ -11,6 +11,10 @@ Weightings of the advantage ``A`` (temperature ``beta``):
 
 * ``"exp"`` (AWR/RWR): ``w = min(exp(A / beta), max_weight)``, always positive:
   low-advantage chunks are imitated less, never pushed down.
+* ``"binary"`` (CRR's indicator, Wang et al. 2020; with episode returns of a
+  sparse success reward this is filtered self-imitation of successful
+  rollouts, as rejection-sampling fine-tuning does): ``w = 1[A > 0]``. It has no
+  scale to tune and bounds the step size whatever the advantage estimate.
 * ``"signed"`` (as wd1 does for masked-diffusion language models):
   ``w = clip(A / beta, -max_weight, max_weight)``; a negative weight lowers the
   likelihood of that chunk's tokens. Its cross-entropy is capped at
@@ -38,7 +42,7 @@ from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT, GOAL_SEGMENT, M
 
 __all__ = ["RewardWeightedDiffusionLoss", "advantage_weights"]
 
-WEIGHTINGS = ("exp", "signed")
+WEIGHTINGS = ("exp", "binary", "signed")
 
 
 def advantage_weights(advantage: torch.Tensor, weighting: str = "exp", temperature: float = 1.0,
@@ -49,6 +53,8 @@ def advantage_weights(advantage: torch.Tensor, weighting: str = "exp", temperatu
     scaled = advantage / temperature
     if weighting == "exp":
         return torch.exp(scaled.clamp(max=torch.log(torch.tensor(max_weight)).item()))
+    if weighting == "binary":
+        return (advantage > 0).to(advantage.dtype)
     return scaled.clamp(-max_weight, max_weight)
 
 
@@ -63,7 +69,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         denoiser: the denoiser being fine-tuned (or its ``TensorDictModule``).
 
     Keyword Args:
-        weighting: ``"exp"`` or ``"signed"``.
+        weighting: ``"exp"``, ``"binary"`` or ``"signed"``.
         temperature: ``beta``, the advantage scale.
         max_weight: weight clip (both signs for ``"signed"``).
         max_negative_nll: cap of the cross-entropy pushed up by negative weights.

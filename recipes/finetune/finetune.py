@@ -4,6 +4,7 @@
     python recipes/finetune/finetune.py --config-name maniskill pretrained=runs/pretrain_PickCube-v1_s0
     python recipes/finetune/finetune.py --config-name maniskill algo=ppo pretrained=...    # path-likelihood PPO
     python recipes/finetune/finetune.py ... advantage.estimator=group advantage.group_size=4  # critic-free
+    python recipes/finetune/finetune.py ... env.reward=sparse advantage.estimator=return loss.rwr.weighting=binary
     python recipes/finetune/finetune.py ... checkpoint.resume=true                          # continue the run
 
 Each iteration, TorchRL's ``SyncDataCollector`` runs the actor with sampled
@@ -11,7 +12,9 @@ decoding for ``collector.decisions_per_batch`` decisions (one decision = one
 chunk of ``k`` executed env steps, rewarded with its discounted reward sum).
 Advantages per decision come from a learned value function with TorchRL's GAE
 (discount ``gamma ** k``) or, critic-free, from returns standardised within groups
-of rollouts that share an initial state. Then:
+of rollouts that share an initial state (``group``) or from the episode's return
+itself (``return``; with ``env.reward=sparse`` and ``loss.rwr.weighting=binary``
+the online rows are the successful rollouts: filtered self-imitation). Then:
 
 * ``algo=rwr``: the decisions join an online buffer; each update mixes
   ``demos.ratio`` demonstration windows with online rows and applies
@@ -112,7 +115,8 @@ def main(cfg: DictConfig) -> None:
     demos = open_demo_buffer(cfg, model)
     value_op, value_optim = make_value(cfg, model, demos)
     gae = make_gae(cfg, value_op, model) if cfg.advantage.estimator == "gae" else None
-    groups = EpisodeGroups(int(cfg.advantage.group_size)) if cfg.advantage.estimator == "group" else None
+    groups = None if gae is not None else (EpisodeGroups(int(cfg.advantage.group_size)) if cfg.advantage.estimator == "group"
+                                            else EpisodeGroups(1, relative=False))
     loss_module = make_loss(cfg, model)
     optimizer = make_optim(cfg, model)
     online = make_online_buffer(cfg)
@@ -175,9 +179,11 @@ def main(cfg: DictConfig) -> None:
             env_steps += steps
             pbar.update(steps)
             collect_s = time.perf_counter() - t0
-            metrics = {"train/chunk_reward": float(batch.get(("next", "reward")).mean()),
-                       "train/success_rate": float(batch.get(("next", SUCCESS_KEY)).float().mean()),
-                       "time/collect_s": collect_s}
+            metrics = {"train/chunk_reward": float(batch.get(("next", "reward")).mean()), "time/collect_s": collect_s}
+            ended = batch.get(("next", "done")).reshape(-1)
+            if ended.any():  # episodes that ended in this batch; success terminates them (success_once)
+                metrics["train/success_rate"] = float(batch.get(("next", SUCCESS_KEY)).reshape(-1)[ended].float().mean())
+                metrics["train/episodes"] = int(ended.sum())
 
             if gae is not None:
                 with torch.no_grad():
@@ -221,7 +227,8 @@ def main(cfg: DictConfig) -> None:
                 (run_dir / "eval_history.json").write_text(json.dumps(history, indent=2))
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=env_steps)
-            pbar.set_postfix(reward=f"{metrics['train/chunk_reward']:.3f}", success=f"{metrics['train/success_rate']:.2f}")
+            if "train/success_rate" in metrics:
+                pbar.set_postfix(reward=f"{metrics['train/chunk_reward']:.3f}", success=f"{metrics['train/success_rate']:.2f}")
             if iteration % int(cfg.checkpoint.interval) == 0 or env_steps >= total:
                 checkpoint()
     finally:

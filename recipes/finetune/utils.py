@@ -46,7 +46,7 @@ from mmada_rl.training.demos import open_demos
 
 PREFIX = "[finetune]"
 ALGOS = ("rwr", "ppo")
-ESTIMATORS = ("gae", "group")
+ESTIMATORS = ("gae", "group", "return")
 #: what every training row of the online buffer holds
 ROW_KEYS = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, VALUE_TARGET_KEY, IMAGE_KEY, STATE_KEY, DECODING_PATH_KEY]
 
@@ -56,7 +56,7 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.algo not in ALGOS:
         raise ValueError(f"algo={cfg.algo!r} is not a fine-tuning algorithm; use algo=rwr or algo=ppo.")
     if cfg.advantage.estimator not in ESTIMATORS:
-        raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae or group.")
+        raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae, group or return.")
     if cfg.pretrained is None:
         raise ValueError("pretrained=null: pass the pretraining run (pretrained=runs/pretrain_...) or a checkpoint/model directory.")
     if not 0.0 <= float(cfg.demos.ratio) < 1.0:
@@ -184,16 +184,18 @@ def decision_rows(model: MMaDAModel, batch: TensorDictBase) -> TensorDict:
 
 
 class EpisodeGroups:
-    """Group-relative advantages: hold decisions until every episode of an initial-state group has ended.
+    """Monte-Carlo advantages: hold decisions until every episode of an initial-state group has ended.
 
     Episode ``e`` of a worker starts from seed ``train_seed + w * stride + e // G``
     (``EnvConfig.group_size = G``), so a group is ``G`` consecutive episodes of one
     worker. Each episode's return is the sum of its chunk rewards; the advantage of
-    every decision of an episode is its return standardised within the group.
+    every decision of an episode is its return standardised within the group
+    (``relative=True``, GRPO-style) or the return itself (``relative=False``,
+    ``G = 1``: with a sparse success reward, 1 for a successful episode, 0 otherwise).
     """
 
-    def __init__(self, group_size: int) -> None:
-        self.group_size = int(group_size)
+    def __init__(self, group_size: int, relative: bool = True) -> None:
+        self.group_size, self.relative = int(group_size), bool(relative)
         self.running: dict[int, list[TensorDictBase]] = {}  # worker -> decisions of its unfinished episode
         self.groups: dict[int, list[TensorDictBase]] = {}  # seed -> finished episodes
 
@@ -218,10 +220,9 @@ class EpisodeGroups:
                 self.running.setdefault(worker, []).append(traj[start:])
         return ready
 
-    @staticmethod
-    def _finish(episodes: list[TensorDictBase], seed: int) -> list[TensorDictBase]:
+    def _finish(self, episodes: list[TensorDictBase], seed: int) -> list[TensorDictBase]:
         returns = torch.stack([ep.get(("next", "reward")).sum() for ep in episodes])
-        adv = group_relative_advantages(returns, torch.full_like(returns, seed, dtype=torch.long))
+        adv = group_relative_advantages(returns, torch.full_like(returns, seed, dtype=torch.long)) if self.relative else returns
         for ep, a in zip(episodes, adv):
             ep.set(ADVANTAGE_KEY, a.expand(ep.shape).clone())
             ep.set(VALUE_TARGET_KEY, ep.get(("next", "reward")).sum().expand(*ep.shape, 1).clone())
