@@ -274,6 +274,11 @@ def test_demo_online_ratio_holds_in_sampled_batches(model, pick_demos):
         assert batch.shape == (8,)
         assert int(batch[IS_DEMO_KEY].sum()) == 2
         assert (batch[SEQUENCE_KEY][batch[IS_DEMO_KEY]] != 0).any()  # real demonstration sequences
+    # demos.ratio=1: the no-RL control takes the same updates on demonstrations only
+    control = OmegaConf.merge(cfg, {"demos": {"ratio": 1.0}})
+    assert utils.split_batch(control) == (0, 8)
+    batch = utils.mixed_batch(model, None, utils.make_demo_windows(control, DemoBuffer.open(pick_demos), model))
+    assert batch.shape == (8,) and bool(batch[IS_DEMO_KEY].all())
 
 
 # -- the recipe as users run it -------------------------------------------------------------------
@@ -349,7 +354,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
 @pytest.mark.parametrize("overrides, message", [
     (["algo=sac"], "algo='sac' is not a fine-tuning algorithm"),
     (["pretrained=null"], "pretrained=null"),
-    (["demos.ratio=1.0"], "demos.ratio must lie in [0, 1)"),
+    (["demos.ratio=1.5"], "demos.ratio must lie in [0, 1]"),
+    (["demos.ratio=1.0", "algo=ppo"], "needs algo=rwr"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -203,8 +203,8 @@ def main(cfg: DictConfig) -> None:
                 if rows is not None:
                     online.extend(rows)
                 model.train()
-                for _ in range(int(cfg.optim.updates_per_batch) if len(online) else 0):
-                    losses = loss_module(mixed_batch(model, online.sample(), demo_windows))
+                for _ in range(int(cfg.optim.updates_per_batch) if len(online) or not n_online else 0):
+                    losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
                     metrics["train/grad_norm"] = gradient_step(cfg, model, optimizer, losses)
                     updates += 1
             elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped

@@ -59,8 +59,10 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae, group or return.")
     if cfg.pretrained is None:
         raise ValueError("pretrained=null: pass the pretraining run (pretrained=runs/pretrain_...) or a checkpoint/model directory.")
-    if not 0.0 <= float(cfg.demos.ratio) < 1.0:
-        raise ValueError(f"demos.ratio must lie in [0, 1), got {cfg.demos.ratio!r}.")
+    if not 0.0 <= float(cfg.demos.ratio) <= 1.0:
+        raise ValueError(f"demos.ratio must lie in [0, 1], got {cfg.demos.ratio!r}.")
+    if float(cfg.demos.ratio) == 1.0 and cfg.algo != "rwr":
+        raise ValueError("demos.ratio=1 (updates on demonstrations only, the no-RL control) needs algo=rwr.")
     last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
     if last > EVAL_SEED_BASE:
         raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
@@ -233,7 +235,7 @@ class EpisodeGroups:
 def make_online_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     """Recent training rows (RWR samples them uniformly; PPO uses each batch once)."""
     return TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay_buffer.capacity)), sampler=RandomSampler(),
-                                  batch_size=split_batch(cfg)[0])
+                                  batch_size=max(1, split_batch(cfg)[0]))
 
 
 def open_demo_buffer(cfg: DictConfig, model: MMaDAModel) -> DemoBuffer:
@@ -256,10 +258,14 @@ def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):
     return make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed))
 
 
-def mixed_batch(model: MMaDAModel, online: TensorDictBase, demo_windows) -> TensorDict:
-    """Online rows and demonstration windows in one loss batch (``is_demo`` marks the demos)."""
+def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) -> TensorDict:
+    """Online rows and demonstration windows in one loss batch (``is_demo`` marks the demos).
+
+    ``online=None``: demonstrations only (``demos.ratio=1``, the control that
+    takes the same updates without learning from the online data).
+    """
     keys = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY]
-    parts = [online.select(*keys).set(IS_DEMO_KEY, torch.zeros(online.shape[0], dtype=torch.bool))]
+    parts = [] if online is None else [online.select(*keys).set(IS_DEMO_KEY, torch.zeros(online.shape[0], dtype=torch.bool))]
     if demo_windows is not None:
         windows = demo_windows.sample()
         ids = model.sequence(windows)
