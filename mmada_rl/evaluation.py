@@ -133,6 +133,7 @@ class EvalResult:
     seeds: list[int] = field(default_factory=list)
     per_episode: list[EpisodeResult] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
+    sample_temperature: float = 0.0  # 0: greedy decoding; > 0: tokens sampled at this temperature
 
     def to_dict(self) -> dict:
         """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``."""
@@ -149,7 +150,8 @@ class EvalResult:
             ("env steps / s", f"{self.env_steps_per_second:.1f}"),
         ]
         head = (f"{self.task}, {self.episodes} episodes, k={self.execute_steps}"
-                f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps} (95% Wilson CI)")
+                f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps}"
+                f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'} (95% Wilson CI)")
         lines = [head, "", "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
         return "\n".join(lines)
 
@@ -217,6 +219,7 @@ def evaluate(
     execute_steps: int | None = None,
     temporal_ensemble: bool = False,
     num_denoise_steps: int | None = None,
+    sample_temperature: float | None = None,
     max_episode_steps: int | None = None,
     control_mode: str = "pd_ee_delta_pose",
     image_size: int | None = None,
@@ -226,7 +229,7 @@ def evaluate(
     device: str = "cpu",
     progress: bool = True,
 ) -> EvalResult:
-    """Roll the policy out greedily on fixed evaluation seeds and measure success.
+    """Roll the policy out on fixed evaluation seeds (greedy by default) and measure success.
 
     Args:
         model: the policy: an :class:`MMaDAModel` or its :class:`MMaDAActor`, a
@@ -240,6 +243,9 @@ def evaluate(
         temporal_ensemble: replan every step with ACT's temporal ensemble.
         num_denoise_steps: decoding steps ``N`` (``None``: the policy's own; a
             baseline takes it as ``get_new_version(num_denoise_steps=N)``).
+        sample_temperature: MMaDA policies only: sample the tokens at this
+            temperature instead of decoding greedily (the stochastic policy an
+            online fine-tuning run collects with, ``collector.temperature``).
         max_episode_steps: episode length (``None``: the task registry's).
         control_mode: ManiSkill controller; must match the one the policy was trained in.
         image_size: checked against the policy's image size (``None``: take it).
@@ -263,11 +269,16 @@ def evaluate(
     cfg = _env_config(_image_size(actor), task, image_size, obs_mode=getattr(actor, "obs_mode", "rgb"),  # "state": an RL reference
                       control_mode=control_mode, max_episode_steps=max_episode_steps)
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
+    if sample_temperature is not None and (mmada is None or not sample_temperature > 0):
+        raise ValueError("sample_temperature needs an MMaDA-VLA policy and a value > 0 "
+                         f"(got {sample_temperature!r} for a {type(actor).__name__}).")
     saved_sampler, penv = mmada.sampler if mmada is not None else None, None
     try:
         if mmada is not None:
-            if num_denoise_steps is not None:
-                mmada.sampler = MaskedDiffusionSampler(SamplerConfig(**{**asdict(mmada.sampler.config), "num_steps": num_denoise_steps}))
+            overrides = {"num_steps": num_denoise_steps, "temperature": sample_temperature}
+            overrides = {k: v for k, v in overrides.items() if v is not None}
+            if overrides:
+                mmada.sampler = MaskedDiffusionSampler(SamplerConfig(**{**asdict(mmada.sampler.config), **overrides}))
             num_steps = mmada.sampler.config.num_steps
         else:
             if num_denoise_steps is not None:
@@ -283,7 +294,8 @@ def evaluate(
                              f"outputs {penv.actor.action_dim}-d ones; pass the control mode it was trained in.")
         limit = cfg.episode_steps  # None: ManiSkill's own TimeLimit ends the episode
         results, frames, first_episode = [], [], None
-        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        decoding = ExplorationType.RANDOM if sample_temperature else ExplorationType.DETERMINISTIC
+        with set_exploration_type(decoding), torch.no_grad():
             penv.actor(penv.env.reset(seed=seeds[0]))  # warm-up: the first decode is not a steady-state latency
             start = time.perf_counter()
             bar = tqdm(seeds, desc=f"eval {task}", disable=not progress, unit="ep")
@@ -313,7 +325,7 @@ def evaluate(
         episode_length=float(np.mean([r.length for r in results])),
         decode_ms_mean=float(latencies.mean()), decode_ms_p95=float(np.percentile(latencies, 95)),
         env_steps_per_second=sum(r.steps for r in results) / seconds,
-        seeds=seeds, per_episode=results,
+        seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
     )  # fmt: skip
     if out_dir is not None:
         metrics.files = _write_outputs(Path(out_dir), metrics, frames if video else None,
@@ -396,6 +408,9 @@ def add_parser(sub) -> None:
     p.add_argument("--temporal-ensemble", action="store_true", help="replan every step and average overlapping chunks (ACT).")
     p.add_argument("--num-denoise-steps", type=int, default=None, help="decoding steps N per chunk: MMaDA's parallel refinement steps, "
                    "a diffusion_policy baseline's DDIM steps (default: the policy's).")
+    p.add_argument("--sample-temperature", type=float, default=None,
+                   help="MMaDA-VLA only: sample the action tokens at this temperature instead of greedy decoding "
+                   "(how good the exploration policy of fine-tuning is; default: greedy).")
     p.add_argument("--max-episode-steps", type=int, default=None, help="episode length (default: the task registry's).")
     p.add_argument("--control-mode", default="pd_ee_delta_pose", help="ManiSkill controller the policy acts in (default: %(default)s).")
     p.add_argument("--image-size", type=int, default=None, help="camera image side; must match the policy (default: the policy's).")
@@ -420,7 +435,7 @@ def _run_eval(args: argparse.Namespace) -> int:
         result = evaluate(
             model_dir, args.task, args.episodes, seed_offset=args.seed_offset, execute_steps=args.execute_steps,
             temporal_ensemble=args.temporal_ensemble, num_denoise_steps=args.num_denoise_steps,
-            max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
+            sample_temperature=args.sample_temperature, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
             out_dir=args.out or Path(args.checkpoint) / "eval", video=args.video, goal_grid=args.goal_grid,
             device=args.device, progress=not args.no_progress,
         )  # fmt: skip

@@ -78,6 +78,30 @@ def test_evaluate_two_short_episodes(model_dir, tmp_path):
     assert len(list((tmp_path / "videos").iterdir())) == 2
 
 
+def test_sampled_evaluation_decodes_with_sampling_at_the_given_temperature(model_dir, monkeypatch):
+    from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, is_greedy
+    from mmada_rl.policy import MMaDAModel
+
+    calls, original = [], MaskedDiffusionSampler.sample
+
+    def recording(self, *args, greedy=None, **kwargs):
+        calls.append((is_greedy(greedy), self.config.temperature))
+        return original(self, *args, greedy=greedy, **kwargs)
+
+    monkeypatch.setattr(MaskedDiffusionSampler, "sample", recording)
+    model = MMaDAModel.load(model_dir)
+    own = model.sampler.config.temperature
+    greedy = evaluate(model, "PickCube-v1", 1, max_episode_steps=4, progress=False)
+    assert calls and all(g and t == own for g, t in calls) and greedy.sample_temperature == 0.0
+    calls.clear()
+    sampled = evaluate(model, "PickCube-v1", 1, max_episode_steps=4, sample_temperature=2.0, progress=False)
+    assert calls and all(not g and t == 2.0 for g, t in calls)
+    assert sampled.sample_temperature == 2.0 and "sampled at T=2" in sampled.table()
+    assert model.sampler.config.temperature == own  # the policy's own sampler is restored
+    with pytest.raises(ValueError, match="sample_temperature"):
+        evaluate(model, "PickCube-v1", 1, sample_temperature=0.0)
+
+
 def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
     done = run_cli("eval", "--help", timeout=120)
     assert done.returncode == 0 and "--execute-steps" in done.stdout and "--temporal-ensemble" in done.stdout
