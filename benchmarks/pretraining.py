@@ -5,9 +5,11 @@
     python recipes/pretrain/pretrain.py --config-name maniskill env.task=PickCube-v1 run_dir=runs/pick_bins_s0
     python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_vq_s0 \\
         tokenizers.action_type=vq optim.total_steps=4000
-    python benchmarks/pretraining.py runs/push_bins_s0 runs/pick_bins_s0 runs/push_vq_s0
+    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_bins_nogoal_s0 \
+        model.predict_goal=false tokenizers.dir=runs/push_bins_s0/tokenizers
+    python benchmarks/pretraining.py runs/push_bins_s0 runs/pick_bins_s0 runs/push_vq_s0 runs/push_bins_nogoal_s0
 
-For every run: its task, action tokenizer, steps trained, every evaluation
+For every run: its task, action tokenizer, whether it predicts the goal image, steps trained, every evaluation
 (``success_once`` with its 95% Wilson interval on the fixed evaluation seeds) and
 the action-token accuracy at masked positions along training (TorchRL CSV logs).
 Writes ``benchmarks/results/pretraining.{json,md,png}``.
@@ -46,6 +48,7 @@ def summarize(run: Path) -> dict:
         "task": config["env"]["task"],
         "action_tokenizer": config["tokenizers"]["action_type"],
         "denoiser": config["model"]["denoiser"],
+        "predict_goal": bool(config["model"].get("predict_goal", True)),
         "steps": int(ckpts[-1].name.split("_")[-1]),
         "planned_steps": config["optim"]["total_steps"],
         "evaluations": [{"step": s, **e} for s, e in sorted(evals.items())],
@@ -68,9 +71,10 @@ def main(argv: list[str] | None = None) -> int:
             f"step {e['step']}: {e['success_once']:.2f} [{e.get('success_once_ci_low', float('nan')):.2f}, "
             f"{e.get('success_once_ci_high', float('nan')):.2f}] ({int(e.get('episodes', 0))} ep)"
             for e in r["evaluations"]) or "not evaluated"
-        rows.append([r["task"], r["action_tokenizer"], r["denoiser"], f"{r['steps']} / {r['planned_steps']}",
+        rows.append([r["task"], r["action_tokenizer"], "yes" if r["predict_goal"] else "no", r["denoiser"],
+                     f"{r['steps']} / {r['planned_steps']}",
                      f"{last_acc:.2f}", evals])
-    header = ["task", "action tokens", "denoiser", "steps (trained / planned)", "action-token accuracy (last 10 logs)",
+    header = ["task", "action tokens", "goal prediction", "denoiser", "steps (trained / planned)", "action-token accuracy (last 10 logs)",
               "success_once [95% CI]"]
     table = markdown_table(header, rows)
 
@@ -81,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     for r in runs:
-        label = f"{r['task']} {r['action_tokenizer']}"
+        label = f"{r['task']} {r['action_tokenizer']}{'' if r['predict_goal'] else ', no goal'}"
         if r["action_accuracy"]:
             steps, values = zip(*r["action_accuracy"])
             ax[0].plot(steps, values, label=label, alpha=0.8)
