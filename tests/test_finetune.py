@@ -211,6 +211,20 @@ def test_episode_returns_as_advantages_wait_for_the_episode_to_end():
     assert second.shape == (4,) and second.get(ADVANTAGE_KEY).tolist() == [0.0] * 4  # failed: filtered out by binary weights
 
 
+def test_weight_goal_applies_the_row_weights_to_the_goal_tokens(model, toy_pretrain_run):
+    td = _two_chunks(model, toy_pretrain_run)
+    plain = RewardWeightedDiffusionLoss(model.denoiser, weighting="binary")
+    weighted = RewardWeightedDiffusionLoss(model.denoiser, weighting="binary", weight_goal=True)
+    with torch.no_grad():
+        both = float(plain(td.clone().set(ADVANTAGE_KEY, torch.tensor([1.0, 1.0])))["loss_goal"])
+        assert float(weighted(td.clone().set(ADVANTAGE_KEY, torch.tensor([1.0, 1.0])))["loss_goal"]) == pytest.approx(both)
+        assert float(weighted(td.clone().set(ADVANTAGE_KEY, torch.tensor([-1.0, -1.0])))["loss_goal"]) == 0.0
+        # failed rows (weight 0) leave the goal loss of the plain variant unchanged
+        assert float(plain(td.clone().set(ADVANTAGE_KEY, torch.tensor([-1.0, -1.0])))["loss_goal"]) == pytest.approx(both)
+        half = float(weighted(td.clone().set(ADVANTAGE_KEY, torch.tensor([1.0, -1.0])))["loss_goal"])
+    assert 0.0 < half < both  # only the first row's goal tokens count (same observation, so about half)
+
+
 def test_kl_penalty_is_zero_at_the_reference_and_grows_when_the_policy_moves(model, toy_pretrain_run):
     import copy
 

@@ -23,6 +23,11 @@ Weightings of the advantage ``A`` (temperature ``beta``):
 
 An optional penalty ``kl_coef * KL(p_ref || p_theta)`` on the scored action
 positions keeps the policy near a frozen reference denoiser (the pretrained one).
+
+``weight_goal=True`` weights each row's goal-image cross-entropy by the same
+weight as its actions instead: the sampler generates goal and chunk jointly, so
+the predicted goal acts as the plan, and learning the goals of failed rollouts
+unweighted can pull the plan toward failure.
 """
 from __future__ import annotations
 
@@ -81,6 +86,8 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
             the batch's advantage spread rather than of the reward.
         reference: a frozen reference denoiser for the KL penalty (copied, never trained).
         kl_coef: weight of ``loss_kl`` (needs ``reference``).
+        weight_goal: weight each row's goal-image cross-entropy like its action
+            tokens (default ``False``: the plain, unweighted denoising loss).
         **kwargs: :class:`MaskedDiffusionLoss` options (schedule, kernel, goal_weight, ...).
 
     Returns ``loss_action`` (weighted), ``loss_goal`` (unweighted), ``loss_kl``
@@ -117,6 +124,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         standardize_advantage: bool = False,
         reference: MaskedDiffusionDenoiser | TensorDictModule | None = None,
         kl_coef: float = 0.0,
+        weight_goal: bool = False,
         **kwargs,
     ) -> None:
         if weighting not in WEIGHTINGS:
@@ -132,7 +140,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         self.weighting, self.temperature, self.max_weight = weighting, float(temperature), float(max_weight)
         self.max_negative_nll, self.demo_weight = float(max_negative_nll), float(demo_weight)
         self.normalize_weights, self.kl_coef = bool(normalize_weights), float(kl_coef)
-        self.standardize_advantage = bool(standardize_advantage)
+        self.standardize_advantage, self.weight_goal = bool(standardize_advantage), bool(weight_goal)
         self.reference = None
         if reference is not None and kl_coef > 0:
             self.reference = copy.deepcopy(unwrap_denoiser(reference)).requires_grad_(False).eval()
@@ -182,7 +190,10 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         loss_action = (weights * per_sample * has_action).sum() / has_action.sum().clamp_min(1)
 
         goal_count = is_goal.sum().clamp_min(1)
-        loss_goal = self.goal_weight * torch.where(is_goal, s.ce, torch.zeros_like(s.ce)).sum() / goal_count
+        goal_ce = torch.where(is_goal, s.ce, torch.zeros_like(s.ce))
+        if self.weight_goal:  # signed weights push goals down too: cap them as the actions' are
+            goal_ce = torch.where(weights[s.rows] < 0, goal_ce.clamp(max=self.max_negative_nll), goal_ce) * weights[s.rows]
+        loss_goal = self.goal_weight * goal_ce.sum() / goal_count
         correct = (s.logits.argmax(-1) == s.targets).float()
         out = {
             "loss_action": self.action_weight * loss_action,

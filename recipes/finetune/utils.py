@@ -284,7 +284,7 @@ def make_loss(cfg: DictConfig, model: MMaDAModel):
             model.denoiser, weighting=r.weighting, temperature=float(r.temperature), max_weight=float(r.max_weight),
             max_negative_nll=float(r.max_negative_nll), demo_weight=float(r.demo_weight),
             normalize_weights=bool(r.normalize_weights), standardize_advantage=bool(r.standardize_advantage),
-            reference=reference, kl_coef=float(r.kl_coef),
+            reference=reference, kl_coef=float(r.kl_coef), weight_goal=bool(r.weight_goal),
             schedule=cfg.loss.schedule, goal_weight=float(cfg.loss.goal_weight),
         )
     p = cfg.loss.ppo
