@@ -16,4 +16,4 @@ cd "$REPO"
 if [[ $# -eq 0 ]]; then
     set -- tests/
 fi
-exec "$VENV/bin/python" -m pytest -q "$@"
+exec "$VENV/bin/python" -m pytest -q --durations=15 "$@"

@@ -333,22 +333,17 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
 
 
-def test_ppo_with_group_advantages_runs(toy_pretrain_run, pick_demos, tmp_path):
-    run_dir = tmp_path / "ppo"
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", "algo=ppo",
-                      "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
-                      "eval.episodes=0", "env.max_episode_steps=10", "collector.total_env_steps=40")
+@pytest.mark.parametrize("name, overrides, steps", [
+    ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2"], 40),
+    ("filtered_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
+                                 "loss.rwr.normalize_weights=true"], 30),
+])
+def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
+    """Episode-level advantages: PPO with group-relative returns; RWR imitating the successful rollouts."""
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}", *overrides,
+                      "eval.episodes=0", "env.max_episode_steps=10", f"collector.total_env_steps={steps}")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "40 env steps" in proc.stdout and "0 updates" not in proc.stdout
-
-
-def test_filtered_self_imitation_runs(toy_pretrain_run, pick_demos, tmp_path):
-    run_dir = tmp_path / "rft"
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", "env.reward=sparse",
-                      "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
-                      "eval.episodes=0", "env.max_episode_steps=10", "collector.total_env_steps=30")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "30 env steps" in proc.stdout and "0 updates" not in proc.stdout
+    assert f"{steps} env steps" in proc.stdout and "0 updates" not in proc.stdout
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):

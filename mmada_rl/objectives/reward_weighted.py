@@ -90,7 +90,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
             tokens (default ``False``: the plain, unweighted denoising loss).
         **kwargs: :class:`MaskedDiffusionLoss` options (schedule, kernel, goal_weight, ...).
 
-    Returns ``loss_action`` (weighted), ``loss_goal`` (unweighted), ``loss_kl``
+    Returns ``loss_action`` (weighted), ``loss_goal`` (unweighted unless ``weight_goal``), ``loss_kl``
     (when ``kl_coef > 0``) and diagnostics (``weight_mean``, ``weight_max``,
     ``negative_fraction``, ``action_accuracy``, ``noise_level``, ``num_scored``).
 

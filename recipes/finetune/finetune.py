@@ -7,7 +7,7 @@
     python recipes/finetune/finetune.py ... env.reward=sparse advantage.estimator=return loss.rwr.weighting=binary
     python recipes/finetune/finetune.py ... checkpoint.resume=true                          # continue the run
 
-Each iteration, TorchRL's ``SyncDataCollector`` runs the actor with sampled
+Each iteration, TorchRL's ``Collector`` runs the actor with sampled
 decoding for ``collector.decisions_per_batch`` decisions (one decision = one
 chunk of ``k`` executed env steps, rewarded with its discounted reward sum).
 Advantages per decision come from a learned value function with TorchRL's GAE
@@ -45,7 +45,6 @@ from mmada_rl.evaluation import evaluate
 from mmada_rl.training import resume_training, save_checkpoint, start_run
 from utils import (
     PREFIX,
-    EpisodeGroups,
     check_config,
     decision_rows,
     executed_steps,
@@ -53,6 +52,7 @@ from utils import (
     load_pretrained,
     make_collector,
     make_demo_windows,
+    make_episode_groups,
     make_gae,
     make_logger,
     make_loss,
@@ -115,8 +115,7 @@ def main(cfg: DictConfig) -> None:
     demos = open_demo_buffer(cfg, model)
     value_op, value_optim = make_value(cfg, model, demos)
     gae = make_gae(cfg, value_op, model) if cfg.advantage.estimator == "gae" else None
-    groups = None if gae is not None else (EpisodeGroups(int(cfg.advantage.group_size)) if cfg.advantage.estimator == "group"
-                                            else EpisodeGroups(1, relative=False))
+    groups = make_episode_groups(cfg)
     loss_module = make_loss(cfg, model)
     optimizer = make_optim(cfg, model)
     online = make_online_buffer(cfg)

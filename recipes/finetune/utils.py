@@ -231,6 +231,13 @@ class EpisodeGroups:
         return episodes
 
 
+def make_episode_groups(cfg: DictConfig) -> EpisodeGroups | None:
+    """Critic-free advantages: group-relative (``group``) or plain (``return``) episode returns; ``None`` for GAE."""
+    if cfg.advantage.estimator == "group":
+        return EpisodeGroups(int(cfg.advantage.group_size))
+    return EpisodeGroups(1, relative=False) if cfg.advantage.estimator == "return" else None
+
+
 # -- data -------------------------------------------------------------------------------
 def make_online_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     """Recent training rows (RWR samples them uniformly; PPO uses each batch once)."""
