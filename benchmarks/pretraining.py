@@ -5,7 +5,7 @@
     python recipes/pretrain/pretrain.py --config-name maniskill env.task=PickCube-v1 run_dir=runs/pick_bins_s0
     python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_vq_s0 \\
         tokenizers.action_type=vq optim.total_steps=4000
-    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_bins_nogoal_s0 \
+    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_bins_nogoal_s0 \\
         model.predict_goal=false tokenizers.dir=runs/push_bins_s0/tokenizers
     python benchmarks/pretraining.py runs/push_bins_s0 runs/pick_bins_s0 runs/push_vq_s0 runs/push_bins_nogoal_s0
 

@@ -31,6 +31,10 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import RESULTS, markdown_table, write_results  # noqa: E402
 
+#: filtered self-imitation: sparse reward, episode returns as advantages, binary weights
+_RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
+        "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
+        "collector.temperature=0.5"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
 METHODS = {
     "mmada_rwr": ("MMaDA-VLA + reward-weighted diffusion (ours)", "rgb+proprio",
@@ -39,14 +43,9 @@ METHODS = {
                                ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr",
                                 "collector.temperature=0.5", "loss.rwr.standardize_advantage=true",
                                 "loss.rwr.temperature=0.5", "loss.rwr.kl_coef=0.5"], True),
-    "mmada_rft": ("MMaDA-VLA + filtered self-imitation (ours: binary weights, sparse reward)", "rgb+proprio",
-                  ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
-                   "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
-                   "collector.temperature=0.5"], True),
+    "mmada_rft": ("MMaDA-VLA + filtered self-imitation (ours: binary weights, sparse reward)", "rgb+proprio", _RFT, True),
     "mmada_rft_goal": ("MMaDA-VLA + filtered self-imitation, goals weighted too (ours)", "rgb+proprio",
-                       ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
-                        "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
-                        "loss.rwr.weight_goal=true", "collector.temperature=0.5"], True),
+                       [*_RFT, "loss.rwr.weight_goal=true"], True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),

@@ -225,9 +225,9 @@ class EpisodeGroups:
     def _finish(self, episodes: list[TensorDictBase], seed: int) -> list[TensorDictBase]:
         returns = torch.stack([ep.get(("next", "reward")).sum() for ep in episodes])
         adv = group_relative_advantages(returns, torch.full_like(returns, seed, dtype=torch.long)) if self.relative else returns
-        for ep, a in zip(episodes, adv):
+        for ep, a, ret in zip(episodes, adv, returns):
             ep.set(ADVANTAGE_KEY, a.expand(ep.shape).clone())
-            ep.set(VALUE_TARGET_KEY, ep.get(("next", "reward")).sum().expand(*ep.shape, 1).clone())
+            ep.set(VALUE_TARGET_KEY, ret.expand(*ep.shape, 1).clone())
         return episodes
 
 
