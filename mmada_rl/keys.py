@@ -37,6 +37,7 @@ __all__ = [
     "NEXT_SUCCESS_KEY",
     "INSTRUCTION_ID_KEY",
     "SEED_KEY",
+    "TASK_INDEX_KEY",
     "IMAGE_TOKENS_KEY",
     "GOAL_TOKENS_KEY",
     "INSTRUCTION_TOKENS_KEY",
@@ -63,6 +64,8 @@ NEXT_SUCCESS_KEY = ("next", "success")
 INSTRUCTION_ID_KEY = "instruction_id"
 #: Environment seed the episode was reset with.
 SEED_KEY = "seed"
+#: Which buffer (task) of a multi-task batch a window came from, int64 ``[*B]``.
+TASK_INDEX_KEY = "task_index"
 
 # -- tokens ------------------------------------------------------------------
 #: Image-tokenizer codes of the current observation, long ``[*B, H', W']`` (local code ids).

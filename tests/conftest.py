@@ -53,6 +53,18 @@ def pick_demos(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def push_demos(pick_demos) -> Path:
+    """One PushCube-v1 planner demonstration beside ``pick_demos`` (same parent: ``<parent>/{task}`` names both)."""
+    from mmada_rl.data.collect import collect
+    from mmada_rl.envs.maniskill import EnvConfig
+
+    out = pick_demos.parent / "PushCube-v1"
+    result = collect(out, EnvConfig(task="PushCube-v1"), episodes=1, progress=False)
+    assert result.new_episodes == 1
+    return out
+
+
+@pytest.fixture(scope="session")
 def toy_pretrain_run(pick_demos, tmp_path_factory) -> Path:
     """The pretraining recipe's toy config on ``pick_demos``: six steps, checkpoints at 3 and 6,
     a one-episode evaluation at the end (a tiny pretrained policy for the fine-tuning tests too)."""

@@ -15,9 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mmada_rl.baselines import (
     ALGOS,
-    BCPolicy,
     ChunkDiffusionBCLoss,
-    DiffusionPolicy,
     DiffusionPolicyConfig,
     EncoderConfig,
     NormalizationStats,

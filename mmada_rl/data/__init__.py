@@ -1,7 +1,14 @@
 """Demonstration and rollout buffers: collection, storage, import and chunk windows."""
 from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
 from mmada_rl.data.metadata import BufferMetadata
-from mmada_rl.data.windows import ChunkWindowSampler, ChunkWindowTransform, make_window_buffer
+from mmada_rl.data.windows import (
+    ChunkWindowSampler,
+    ChunkWindowTransform,
+    MultiTaskWindows,
+    make_window_buffer,
+    pad_state,
+    window_generators,
+)
 
 __all__ = [
     "BufferMetadata",
@@ -9,5 +16,8 @@ __all__ = [
     "ChunkWindowSampler",
     "ChunkWindowTransform",
     "DemoBuffer",
+    "MultiTaskWindows",
     "make_window_buffer",
+    "pad_state",
+    "window_generators",
 ]

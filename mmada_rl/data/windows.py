@@ -32,7 +32,9 @@ from mmada_rl.keys import (
     GOAL_IMAGE_KEY,
     GOAL_IS_CLIPPED_KEY,
     IMAGE_KEY,
+    STATE_KEY,
     STEP_KEY,
+    TASK_INDEX_KEY,
 )
 
 class ChunkWindowSampler(SliceSampler):
@@ -124,13 +126,14 @@ class ChunkWindowTransform(Transform):
 
 
 
-def make_window_buffer(buffer, chunk_size: int, batch_size: int, *, seed: int | None = None) -> ReplayBuffer:
+def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None) -> ReplayBuffer:
     """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
 
     Args:
         buffer: a :class:`~mmada_rl.data.buffer.DemoBuffer`.
         chunk_size: ``K``; must not exceed the longest stored episode.
-        batch_size: number of windows per ``sample()``.
+        batch_size: number of windows per ``sample()``; ``None``: ``sample(batch_size=n * (chunk_size + 1))``
+            names the number of transitions each time.
         seed: seeds the sampler's generator for reproducible batches.
 
     Examples:
@@ -160,6 +163,90 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int, *, seed: int | 
         storage=buffer.storage,
         sampler=sampler,
         transform=transform,
-        batch_size=batch_size * (chunk_size + 1),
+        batch_size=None if batch_size is None else batch_size * (chunk_size + 1),
         generator=torch.Generator().manual_seed(seed) if seed is not None else None,
     )
+
+
+def pad_state(state: torch.Tensor, dim: int) -> torch.Tensor:
+    """Zero-pad the last dimension of ``state`` to ``dim`` (tasks of one multi-task model differ in state size)."""
+    if state.shape[-1] > dim:
+        raise ValueError(f"state has {state.shape[-1]} dimensions, more than the {dim} the model was fitted on.")
+    if state.shape[-1] == dim:
+        return state
+    return torch.nn.functional.pad(state, (0, dim - state.shape[-1]))
+
+
+class MultiTaskWindows:
+    """Chunk windows from several demonstration buffers (one per task), mixed in every batch.
+
+    Each window's task is drawn independently with probabilities ``weights``;
+    every buffer then samples its share through its own
+    :func:`make_window_buffer` (so windows never cross episodes and each keeps
+    its instruction text), and the shares are concatenated. States are
+    zero-padded to the largest state size (ManiSkill tasks add task-specific
+    entries, e.g. PickCube's goal position), and ``task_index`` records the
+    buffer each window came from.
+
+    TorchRL's ``ReplayBufferEnsemble`` is not used: with slice samplers it
+    splits a batch into equal per-member sub-batches of whole slices, where a
+    multi-task batch needs a random number of windows per task.
+
+    Args:
+        buffers: the :class:`~mmada_rl.data.buffer.DemoBuffer` of each task.
+        chunk_size, batch_size: as for :func:`make_window_buffer`.
+        weights: ``"uniform"`` (each task equally often), ``"transitions"``
+            (proportional to stored transitions, as one merged buffer would be)
+            or one non-negative weight per buffer.
+        seed: seeds the task draw and every member's sampler.
+
+    Examples:
+        >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)
+        >>> batch = windows.sample()
+        >>> batch["language_instruction"][:2], batch["task_index"][:2]
+    """
+
+    def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None):
+        buffers = list(buffers)
+        if not buffers:
+            raise ValueError("MultiTaskWindows needs at least one buffer.")
+        if isinstance(weights, str):
+            if weights not in ("uniform", "transitions"):
+                raise ValueError(f"weights must be 'uniform', 'transitions' or one number per buffer, got {weights!r}.")
+            weights = [1.0] * len(buffers) if weights == "uniform" else [float(len(b)) for b in buffers]
+        weights = torch.as_tensor([float(w) for w in weights])
+        if weights.numel() != len(buffers) or (weights < 0).any() or weights.sum() <= 0:
+            raise ValueError(f"need one non-negative weight per buffer ({len(buffers)}), not all zero; got {weights.tolist()}.")
+        self.buffers = buffers
+        self.chunk_size, self.batch_size = int(chunk_size), int(batch_size)
+        self.probabilities = weights / weights.sum()
+        self.state_dim = max(b.metadata.state_dim for b in buffers)
+        self.members = [
+            make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i) for i, b in enumerate(buffers)
+        ]
+        self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()
+
+    @property
+    def generators(self) -> dict[str, torch.Generator]:
+        """Every generator the batches depend on (checkpointed so a resumed run replays the same batches)."""
+        out = {"sampler": self._rng}
+        out.update({f"sampler_{i}": member._rng for i, member in enumerate(self.members)})
+        return out
+
+    def sample(self) -> TensorDictBase:
+        tasks = torch.multinomial(self.probabilities, self.batch_size, replacement=True, generator=self._rng)
+        parts = []
+        for i, member in enumerate(self.members):
+            n = int((tasks == i).sum())
+            if n == 0:
+                continue
+            part = member.sample(batch_size=n * (self.chunk_size + 1))
+            part.set(STATE_KEY, pad_state(part.get(STATE_KEY), self.state_dim))
+            part.set(TASK_INDEX_KEY, torch.full((n,), i, dtype=torch.int64))
+            parts.append(part)
+        return torch.cat(parts)
+
+
+def window_generators(data) -> dict[str, torch.Generator]:
+    """The generators of a window sampler (:func:`make_window_buffer` or :class:`MultiTaskWindows`), for checkpoints."""
+    return data.generators if isinstance(data, MultiTaskWindows) else {"sampler": data._rng}

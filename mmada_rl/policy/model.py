@@ -28,6 +28,7 @@ from safetensors.torch import load_file, save_file
 from tensordict import NonTensorData, NonTensorStack, TensorDictBase
 from torch import nn
 
+from mmada_rl.data.windows import pad_state
 from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
@@ -185,7 +186,8 @@ class MMaDAModel(nn.Module):
             "obs_ids": self.image_tokenizer.encode(image).reshape(-1, self.layout.config.obs_tokens),
         }
         if self.proprio_tokenizer is not None:
-            state = td.get(STATE_KEY)
+            # a multi-task model's tokenizer spans the largest state; smaller task states are zero-padded
+            state = pad_state(td.get(STATE_KEY), self.proprio_tokenizer.config.action_dim)
             with warnings.catch_warnings():
                 # states beyond the demonstrations' range are clipped to the edge bins at every step
                 # of a rollout; the normaliser still counts them (proprio_tokenizer.normalizer.num_out_of_range)

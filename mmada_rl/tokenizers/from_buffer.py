@@ -1,4 +1,4 @@
-"""Fit every tokenizer a policy needs on one demonstration buffer.
+"""Fit every tokenizer a policy needs on one demonstration buffer (or several, for a multi-task model).
 
 Used by ``mmada-rl fit-tokenizers`` and by the pretraining recipe (which fits
 them first when no fitted tokenizers are given).
@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 
+from mmada_rl.data.windows import pad_state
 from mmada_rl.keys import ACTION_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.tokenizers.action_bins import UniformBinActionTokenizer, UniformBinActionTokenizerConfig
 from mmada_rl.tokenizers.action_fsq import FSQActionTokenizer, FSQActionTokenizerConfig
@@ -98,14 +99,38 @@ def buffer_arrays(buffer) -> dict[str, torch.Tensor]:
     return out
 
 
-def fit_tokenizers(buffer, cfg: TokenizerFitConfig | None = None, *, progress: bool = True) -> FittedTokenizers:
-    """Fit text, image, action (and proprio) tokenizers on ``buffer``'s transitions."""
+def union_arrays(buffers) -> dict[str, torch.Tensor]:
+    """:func:`buffer_arrays` of several buffers, concatenated; states are zero-padded to the largest state size.
+
+    Raises:
+        ValueError: the buffers differ in action size, control mode, observation mode or image size.
+    """
+    first = buffers[0].metadata
+    for b in buffers[1:]:
+        m = b.metadata
+        for name in ("action_dim", "control_mode", "obs_mode", "image_size"):
+            if getattr(m, name) != getattr(first, name):
+                raise ValueError(f"buffers {buffers[0].path} and {b.path} differ in {name} "
+                                 f"({getattr(first, name)!r} vs {getattr(m, name)!r}); one model needs them equal.")
+    arrays = [buffer_arrays(b) for b in buffers]
+    state_dim = max(a["state"].shape[-1] for a in arrays)
+    out = {key: torch.cat([a[key] for a in arrays]) for key in arrays[0] if key != "state"}
+    out["state"] = torch.cat([pad_state(a["state"], state_dim) for a in arrays])
+    return out
+
+
+def fit_tokenizers(buffers, cfg: TokenizerFitConfig | None = None, *, progress: bool = True) -> FittedTokenizers:
+    """Fit text, image, action (and proprio) tokenizers on the transitions of one buffer or of several
+    (a multi-task model: every task's instructions, frames, actions and zero-padded states)."""
     cfg = cfg or TokenizerFitConfig()
-    meta = buffer.metadata
-    if meta.obs_mode != "rgb":
-        raise ValueError(f"buffer {buffer.path} has no images (obs_mode={meta.obs_mode!r}); the policy needs an RGB buffer.")
-    arrays = buffer_arrays(buffer)
-    text = TextTokenizer(TextTokenizerConfig(max_len=cfg.text_max_len)).fit(meta.instructions)
+    buffers = [buffers] if hasattr(buffers, "metadata") else list(buffers)
+    for b in buffers:
+        if b.metadata.obs_mode != "rgb":
+            raise ValueError(f"buffer {b.path} has no images (obs_mode={b.metadata.obs_mode!r}); the policy needs an RGB buffer.")
+    meta = buffers[0].metadata
+    arrays = union_arrays(buffers)
+    instructions = [text for b in buffers for text in b.metadata.instructions]
+    text = TextTokenizer(TextTokenizerConfig(max_len=cfg.text_max_len)).fit(instructions)
     image = VQImageTokenizer(VQImageTokenizerConfig(**{"image_size": meta.image_size, **cfg.image}))
     fits = {"image": fit_image_tokenizer(image, arrays["image"], steps=cfg.image_steps, batch_size=cfg.image_batch_size,
                                          seed=cfg.seed, progress=progress)}
@@ -115,7 +140,7 @@ def fit_tokenizers(buffer, cfg: TokenizerFitConfig | None = None, *, progress: b
     if cfg.proprio_bins:
         # the state is quantised per dimension over its full data range (nothing seen in training is clipped)
         proprio = UniformBinActionTokenizer(
-            UniformBinActionTokenizerConfig(action_dim=meta.state_dim, gripper_dims=(), num_bins=cfg.proprio_bins,
+            UniformBinActionTokenizerConfig(action_dim=arrays["state"].shape[-1], gripper_dims=(), num_bins=cfg.proprio_bins,
                                             low_quantile=0.0, high_quantile=1.0)
         )
         fit_action_tokenizer(proprio, arrays["state"], progress=False)

@@ -3,9 +3,11 @@
     python recipes/pretrain/pretrain.py                          # toy: real PickCube-v1, about a minute
     python recipes/pretrain/pretrain.py --config-name maniskill  # 100 demos, small model
     python recipes/pretrain/pretrain.py checkpoint.resume=true   # continue the run in run_dir
+    python recipes/pretrain/pretrain.py --config-name multitask  # one model on PickCube, PushCube, StackCube
 
-Reads a demonstration buffer (collecting it first if missing), fits the
-tokenizers (or loads ``tokenizers.dir``), trains the denoiser on chunk windows
+Reads a demonstration buffer (collecting it first if missing) — or one per
+task when ``tasks`` lists several, the instruction then selecting the task —
+fits the tokenizers (or loads ``tokenizers.dir``), trains the denoiser on chunk windows
 with the masked-diffusion loss, evaluates in ManiSkill every ``eval.interval``
 steps and at the end, and checkpoints atomically every ``checkpoint.interval`` steps.
 """
@@ -20,41 +22,53 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
+from mmada_rl.data import window_generators
 from mmada_rl.training import resume_training, save_checkpoint, start_run
 from utils import (
     loss_inputs,
     make_data,
-    make_demo_buffer,
+    make_demo_buffers,
     make_logger,
     make_loss,
     make_model,
     make_optim,
     make_tokenizers,
+    task_list,
     total_loss,
 )
 
 
 def evaluate(cfg: DictConfig, model, step: int) -> dict:
+    """Success of ``model`` on each training task; a multi-task model also reports per-task metrics
+    (``eval/<task>/...``) and their mean under the plain ``eval/...`` names."""
     from mmada_rl.evaluation import evaluate as run_eval
 
-    result = run_eval(model, cfg.env.task, episodes=int(cfg.eval.episodes), image_size=int(cfg.env.image_size),
-                      control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
-                      execute_steps=int(cfg.eval.execute_steps), progress=False)
-    return result.to_dict()
+    per_task = {}
+    for task in task_list(cfg):
+        result = run_eval(model, task, episodes=int(cfg.eval.episodes), image_size=int(cfg.env.image_size),
+                          control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
+                          execute_steps=int(cfg.eval.execute_steps), progress=False)
+        per_task[task] = result.to_dict()
+    if len(per_task) == 1:
+        return next(iter(per_task.values()))
+    out = {f"eval/{task}/{key[len('eval/'):]}": value for task, metrics in per_task.items() for key, value in metrics.items()}
+    for key in ("success_once", "success_at_end", "episode_length"):
+        out[f"eval/{key}"] = sum(m[f"eval/{key}"] for m in per_task.values()) / len(per_task)
+    return out
 
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
     run_dir, config = start_run(cfg)
 
-    buffer = make_demo_buffer(cfg)
-    tokenizers = make_tokenizers(cfg, buffer, run_dir)
+    buffers = make_demo_buffers(cfg)
+    tokenizers = make_tokenizers(cfg, buffers, run_dir)
     model = make_model(cfg, tokenizers)
-    data = make_data(cfg, buffer)
+    data = make_data(cfg, buffers)
     loss_module = make_loss(cfg, model)
     optimizer, scheduler = make_optim(cfg, model)
     logger = make_logger(cfg, run_dir)
-    generators = {"sampler": data._rng}  # the window sampler's generator
+    generators = window_generators(data)
 
     start = 0
     def load_weights(model_dir: Path) -> None:
@@ -66,7 +80,8 @@ def main(cfg: DictConfig) -> None:
         start = ckpt.step
         print(f"[pretrain] resumed from {ckpt.path} at step {start}")
     params = sum(p.numel() for p in model.denoiser.parameters())
-    print(f"[pretrain] {buffer.metadata.num_episodes} demos, {len(buffer)} transitions; denoiser "
+    demos = ", ".join(f"{b.metadata.task}: {b.metadata.num_episodes} demos, {len(b)} transitions" for b in buffers)
+    print(f"[pretrain] {demos}; denoiser "
           f"{params / 1e6:.2f}M parameters; sequence length {model.layout.length}; vocabulary {model.vocab.size}")
 
     total, history = int(cfg.optim.total_steps), []

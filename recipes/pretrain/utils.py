@@ -7,7 +7,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
-from mmada_rl.data import DemoBuffer, make_window_buffer
+from mmada_rl.data import DemoBuffer, MultiTaskWindows, make_window_buffer
 from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import ACTION_IS_PAD_KEY, SEQUENCE_KEY
@@ -23,13 +23,30 @@ def make_env_config(cfg: DictConfig) -> EnvConfig:
     return EnvConfig(**OmegaConf.to_container(cfg.env))
 
 
-def make_demo_buffer(cfg: DictConfig) -> DemoBuffer:
-    """The demonstration buffer of ``cfg.data.dir``; collected first when missing or short."""
-    return open_demos(cfg.data.dir, make_env_config(cfg), collect_episodes=int(cfg.data.collect_episodes), prefix="[pretrain] ")
+def task_list(cfg: DictConfig) -> list[str]:
+    """The tasks the model is trained on: ``tasks`` (a multi-task model) or ``env.task``."""
+    tasks = cfg.get("tasks")
+    if tasks is None:
+        return [str(cfg.env.task)]
+    tasks = [str(t) for t in tasks]
+    if not tasks or len(set(tasks)) != len(tasks):
+        raise ValueError(f"tasks must list distinct task ids (or be null for env.task alone), got {tasks}.")
+    return tasks
 
 
-def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Tokenizers:
-    """Load fitted tokenizers (``tokenizers.dir``) or fit them on the buffer into ``run_dir/tokenizers``."""
+def make_demo_buffers(cfg: DictConfig) -> list[DemoBuffer]:
+    """The demonstration buffer of each task (``data.dir`` with ``{task}`` replaced); collected first when missing or short."""
+    tasks = task_list(cfg)
+    if len(tasks) > 1 and "{task}" not in str(cfg.data.dir):
+        raise ValueError(f"a multi-task run needs one buffer per task: put {{task}} in data.dir (got {cfg.data.dir!r}), "
+                         "e.g. data.dir='data/{task}'.")
+    env = make_env_config(cfg)
+    return [open_demos(str(cfg.data.dir).format(task=task), EnvConfig(**{**env.to_dict(), "task": task}),
+                       collect_episodes=int(cfg.data.collect_episodes), prefix="[pretrain] ") for task in tasks]
+
+
+def make_tokenizers(cfg: DictConfig, buffers: list[DemoBuffer], run_dir: Path) -> Tokenizers:
+    """Load fitted tokenizers (``tokenizers.dir``) or fit them on the buffers into ``run_dir/tokenizers``."""
     tcfg = OmegaConf.to_container(cfg.tokenizers)
     directory = tcfg.pop("dir")
     options = tcfg["action"]
@@ -43,12 +60,17 @@ def make_tokenizers(cfg: DictConfig, buffer: DemoBuffer, run_dir: Path) -> Token
             fit = TokenizerFitConfig(**{**tcfg, "seed": int(cfg.seed)})
             if "hidden_sizes" in fit.action:  # learned tokenizers only (bins have no network)
                 fit.action["hidden_sizes"] = tuple(fit.action["hidden_sizes"])
-            fitted = fit_tokenizers(buffer, fit)
+            fitted = fit_tokenizers(buffers, fit)
             fitted.save(directory)
     tokenizers = Tokenizers.load(directory)
+    buffer = buffers[0]
     if tokenizers.image.config.image_size != buffer.metadata.image_size:
         raise ValueError(f"the image tokenizer in {directory} was fitted on {tokenizers.image.config.image_size}px images "
                          f"but the buffer holds {buffer.metadata.image_size}px ones; refit or use matching env.image_size.")
+    state_dim = max(b.metadata.state_dim for b in buffers)
+    if tokenizers.proprio is not None and tokenizers.proprio.config.action_dim < state_dim:
+        raise ValueError(f"the proprio tokenizer in {directory} covers {tokenizers.proprio.config.action_dim} state "
+                         f"dimensions but the demonstrations have {state_dim}; fit tokenizers on these tasks.")
     return tokenizers
 
 
@@ -66,9 +88,15 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
     return MMaDAModel(config, tokenizers).to(cfg.device)
 
 
-def make_data(cfg: DictConfig, buffer: DemoBuffer):
-    """Chunk-window sampler over the demonstrations (seeded, so resumption replays the same batches)."""
-    return make_window_buffer(buffer, int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), seed=int(cfg.seed))
+def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
+    """Chunk-window sampler over the demonstrations (seeded, so resumption replays the same batches);
+    with several tasks, every batch mixes their windows (``data.task_weights``)."""
+    K, batch, seed = int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), int(cfg.seed)
+    if len(buffers) == 1:
+        return make_window_buffer(buffers[0], K, batch, seed=seed)
+    weights = cfg.data.get("task_weights", "uniform")
+    weights = weights if isinstance(weights, str) else list(weights)
+    return MultiTaskWindows(buffers, K, batch, weights=weights, seed=seed)
 
 
 def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:

@@ -1,0 +1,112 @@
+"""One model on several tasks: mixed chunk windows, tokenizers fitted on every task, the recipe end to end."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from mmada_rl.data import DemoBuffer, MultiTaskWindows, pad_state
+from mmada_rl.keys import STATE_KEY, TASK_INDEX_KEY
+from mmada_rl.policy.model import instructions_of
+from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
+
+REPO = Path(__file__).resolve().parents[1]
+RECIPE = REPO / "recipes" / "pretrain" / "pretrain.py"
+
+
+@pytest.fixture(scope="module")
+def buffers(pick_demos, push_demos) -> list[DemoBuffer]:
+    return [DemoBuffer.open(pick_demos), DemoBuffer.open(push_demos)]
+
+
+def test_state_sizes_differ_between_tasks(buffers):
+    # PickCube's observation adds the goal position and a grasp flag: the reason states are padded
+    pick, push = (b.metadata.state_dim for b in buffers)
+    assert pick > push
+
+
+def test_batches_mix_tasks_with_their_own_instructions_and_padded_states(buffers):
+    windows = MultiTaskWindows(buffers, chunk_size=5, batch_size=64, seed=0)
+    batch = windows.sample()
+    assert batch.shape == (64,)
+    tasks = batch.get(TASK_INDEX_KEY)
+    assert set(tasks.tolist()) == {0, 1}
+    assert batch.get(STATE_KEY).shape == (64, max(b.metadata.state_dim for b in buffers))
+    texts = instructions_of(batch)  # what the model reads
+    for i, b in enumerate(buffers):
+        assert {texts[j] for j in torch.nonzero(tasks == i).flatten().tolist()} == set(b.metadata.instructions)
+    push_states = batch.get(STATE_KEY)[tasks == 1]
+    assert (push_states[:, buffers[1].metadata.state_dim:] == 0).all()
+
+
+def test_task_weights_set_the_mix(buffers):
+    counts = torch.zeros(2)
+    windows = MultiTaskWindows(buffers, chunk_size=5, batch_size=50, weights=[3.0, 1.0], seed=1)
+    for _ in range(8):
+        counts += torch.bincount(windows.sample().get(TASK_INDEX_KEY), minlength=2)
+    assert counts[0] / counts.sum() == pytest.approx(0.75, abs=0.08)
+    only_push = MultiTaskWindows(buffers, chunk_size=5, batch_size=20, weights=[0.0, 1.0], seed=1).sample()
+    assert (only_push.get(TASK_INDEX_KEY) == 1).all()
+
+
+def test_same_seed_same_batches(buffers):
+    a = MultiTaskWindows(buffers, chunk_size=5, batch_size=16, seed=3).sample()
+    b = MultiTaskWindows(buffers, chunk_size=5, batch_size=16, seed=3).sample()
+    assert torch.equal(a.get(TASK_INDEX_KEY), b.get(TASK_INDEX_KEY)) and torch.equal(a.get(STATE_KEY), b.get(STATE_KEY))
+
+
+@pytest.mark.parametrize("weights", [[1.0], [0.0, 0.0], [-1.0, 2.0], "balanced"])
+def test_bad_task_weights_are_refused(buffers, weights):
+    with pytest.raises(ValueError, match="weight"):
+        MultiTaskWindows(buffers, chunk_size=5, batch_size=8, weights=weights)
+
+
+def test_pad_state_refuses_a_larger_state():
+    assert pad_state(torch.ones(2, 3), 5).tolist() == [[1, 1, 1, 0, 0]] * 2
+    with pytest.raises(ValueError, match="more than the 2"):
+        pad_state(torch.ones(3), 2)
+
+
+def test_tokenizers_fitted_on_every_task(buffers):
+    cfg = TokenizerFitConfig(action_type="bins", action={"num_bins": 32}, image_steps=2, proprio_bins=8,
+                             image={"codebook_size": 16, "hidden_channels": 8, "embed_dim": 8})
+    fitted = fit_tokenizers(buffers, cfg, progress=False)
+    assert fitted.proprio.config.action_dim == max(b.metadata.state_dim for b in buffers)
+    for b in buffers:  # one word vocabulary covers every task's instruction
+        assert "[UNK]" not in fitted.text.decode(fitted.text.encode(b.metadata.instructions).ids)[0]
+    # the shared action bins are fitted on both tasks' actions: their data range is the union of the two
+    union = torch.cat([b.storage[: len(b)].get("action") for b in buffers])
+    torch.testing.assert_close(fitted.action.normalizer.data_min, union.min(0).values)
+    torch.testing.assert_close(fitted.action.normalizer.data_max, union.max(0).values)
+
+
+def test_multitask_recipe_trains_and_evaluates_each_task(pick_demos, push_demos, tmp_path):
+    run_dir = tmp_path / "multi"
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE), f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]",
+         f"data.dir='{pick_demos.parent}/{{task}}'", "data.collect_episodes=0", "optim.total_steps=3",
+         "checkpoint.interval=3", "eval.episodes=1", "eval.max_episode_steps=5", "num_threads=1"],
+        cwd=REPO, capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "PickCube-v1: 2 demos" in proc.stdout and "PushCube-v1: 1 demos" in proc.stdout
+    final = json.loads((run_dir / "final.json").read_text())
+    for task in ("PickCube-v1", "PushCube-v1"):
+        assert final[f"eval/{task}/episodes"] == 1 and final[f"eval/{task}/episode_length"] == 5
+    mean = (final["eval/PickCube-v1/success_once"] + final["eval/PushCube-v1/success_once"]) / 2
+    assert final["eval/success_once"] == pytest.approx(mean)
+    config = json.loads((run_dir / "checkpoints" / "step_00000003" / "config.json").read_text())
+    assert config["tasks"] == ["PickCube-v1", "PushCube-v1"]
+
+
+def test_multitask_without_a_task_placeholder_is_one_clear_error(pick_demos, tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE), f"run_dir={tmp_path / 'bad'}", "tasks=[PickCube-v1,PushCube-v1]",
+         f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=1", "eval.episodes=0"],
+        cwd=REPO, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0 and "put {task} in data.dir" in proc.stderr
