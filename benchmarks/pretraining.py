@@ -34,26 +34,44 @@ def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
         return [(int(float(step)), float(value)) for step, value in csv.reader(f)]
 
 
+def read_evaluations(run: Path, prefix: str = "eval") -> list[dict]:
+    """Every evaluation logged under ``prefix`` (``eval`` or ``eval/<task>`` for a multi-task run), by step."""
+    evals = {step: {"success_once": v} for step, v in read_scalar(run, f"{prefix}/success_once")}
+    for key in ("success_once_ci_low", "success_once_ci_high", "episodes", "success_at_end", "decode_ms_mean"):
+        for step, v in read_scalar(run, f"{prefix}/{key}"):
+            evals.setdefault(step, {})[key] = v
+    return [{"step": s, **e} for s, e in sorted(evals.items())]
+
+
 def summarize(run: Path) -> dict:
     ckpts = sorted((run / "checkpoints").glob("step_*")) if (run / "checkpoints").exists() else []
     if not ckpts:
         raise FileNotFoundError(f"{run} holds no checkpoints: not a pretraining run directory.")
     config = json.loads((ckpts[-1] / "config.json").read_text())
-    evals = {step: {"success_once": v} for step, v in read_scalar(run, "eval/success_once")}
-    for key in ("success_once_ci_low", "success_once_ci_high", "episodes", "success_at_end", "decode_ms_mean"):
-        for step, v in read_scalar(run, f"eval/{key}"):
-            evals.setdefault(step, {})[key] = v
+    tasks = config.get("tasks") or [config["env"]["task"]]
     return {
         "run": str(run),
-        "task": config["env"]["task"],
+        "task": "+".join(tasks),
+        "tasks": tasks,
         "action_tokenizer": config["tokenizers"]["action_type"],
         "denoiser": config["model"]["denoiser"],
         "predict_goal": bool(config["model"].get("predict_goal", True)),
+        "chunk_size": int(config["model"]["chunk_size"]),
+        "execute_steps": int(config["eval"]["execute_steps"]),
         "steps": int(ckpts[-1].name.split("_")[-1]),
         "planned_steps": config["optim"]["total_steps"],
-        "evaluations": [{"step": s, **e} for s, e in sorted(evals.items())],
+        # a single-task run logs eval/...; a multi-task run also logs eval/<task>/... (eval/... is their mean)
+        "evaluations": read_evaluations(run),
+        "per_task": {t: read_evaluations(run, f"eval/{t}") for t in tasks} if len(tasks) > 1 else {},
         "action_accuracy": read_scalar(run, "train/action_accuracy"),
     }
+
+
+def format_evaluations(evaluations: list[dict]) -> str:
+    return "; ".join(
+        f"step {e['step']}: {e['success_once']:.2f} [{e.get('success_once_ci_low', float('nan')):.2f}, "
+        f"{e.get('success_once_ci_high', float('nan')):.2f}] ({int(e.get('episodes', 0))} ep)"
+        for e in evaluations) or "not evaluated"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,15 +85,15 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         acc = r["action_accuracy"]
         last_acc = sum(v for _, v in acc[-10:]) / max(1, len(acc[-10:]))
-        evals = "; ".join(
-            f"step {e['step']}: {e['success_once']:.2f} [{e.get('success_once_ci_low', float('nan')):.2f}, "
-            f"{e.get('success_once_ci_high', float('nan')):.2f}] ({int(e.get('episodes', 0))} ep)"
-            for e in r["evaluations"]) or "not evaluated"
-        rows.append([r["task"], r["action_tokenizer"], "yes" if r["predict_goal"] else "no", r["denoiser"],
-                     f"{r['steps']} / {r['planned_steps']}",
-                     f"{last_acc:.2f}", evals])
-    header = ["task", "action tokens", "goal prediction", "denoiser", "steps (trained / planned)", "action-token accuracy (last 10 logs)",
-              "success_once [95% CI]"]
+        common = [r["action_tokenizer"], "yes" if r["predict_goal"] else "no", f"{r['chunk_size']} / {r['execute_steps']}",
+                  r["denoiser"], f"{r['steps']} / {r['planned_steps']}", f"{last_acc:.2f}"]
+        if r["per_task"]:
+            rows += [[f"{task} (multi-task, {len(r['tasks'])} tasks)", *common, format_evaluations(evals)]
+                     for task, evals in r["per_task"].items()]
+        else:
+            rows.append([r["task"], *common, format_evaluations(r["evaluations"])])
+    header = ["task", "action tokens", "goal prediction", "K / executed", "denoiser", "steps (trained / planned)",
+              "action-token accuracy (last 10 logs)", "success_once [95% CI]"]
     table = markdown_table(header, rows)
 
     import matplotlib
@@ -85,7 +103,9 @@ def main(argv: list[str] | None = None) -> int:
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     for r in runs:
-        label = f"{r['task']} {r['action_tokenizer']}{'' if r['predict_goal'] else ', no goal'}"
+        name = r["task"] if len(r["tasks"]) == 1 else "multi-task"
+        ablated = ("" if r["predict_goal"] else ", no goal") + ("" if r["chunk_size"] == 5 else f", K={r['chunk_size']}")
+        label = f"{name} {r['action_tokenizer']}{ablated}"
         if r["action_accuracy"]:
             steps, values = zip(*r["action_accuracy"])
             ax[0].plot(steps, values, label=label, alpha=0.8)
