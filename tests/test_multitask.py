@@ -1,6 +1,7 @@
 """One model on several tasks: mixed chunk windows, tokenizers fitted on every task, the recipe end to end."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -84,8 +85,10 @@ def test_tokenizers_fitted_on_every_task(buffers):
     torch.testing.assert_close(fitted.action.normalizer.data_max, union.max(0).values)
 
 
-def test_multitask_recipe_trains_and_evaluates_each_task(pick_demos, push_demos, tmp_path):
-    run_dir = tmp_path / "multi"
+@pytest.fixture(scope="module")
+def multitask_run(pick_demos, push_demos, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """Three toy steps of one model on PickCube-v1 and PushCube-v1, a one-episode evaluation of each task."""
+    run_dir = tmp_path_factory.mktemp("multitask") / "multi"
     proc = subprocess.run(
         [sys.executable, str(RECIPE), f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]",
          f"data.dir='{pick_demos.parent}/{{task}}'", "data.collect_episodes=0", "optim.total_steps=3",
@@ -93,6 +96,11 @@ def test_multitask_recipe_trains_and_evaluates_each_task(pick_demos, push_demos,
         cwd=REPO, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return run_dir, proc
+
+
+def test_multitask_recipe_trains_and_evaluates_each_task(multitask_run):
+    run_dir, proc = multitask_run
     assert "PickCube-v1: 2 demos" in proc.stdout and "PushCube-v1: 1 demos" in proc.stdout
     final = json.loads((run_dir / "final.json").read_text())
     for task in ("PickCube-v1", "PushCube-v1"):
@@ -110,3 +118,16 @@ def test_multitask_without_a_task_placeholder_is_one_clear_error(pick_demos, tmp
         cwd=REPO, capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode != 0 and "put {task} in data.dir" in proc.stderr
+
+
+def test_pretraining_report_gives_one_row_per_task(multitask_run, tmp_path):
+    spec = importlib.util.spec_from_file_location("pretraining_benchmark", REPO / "benchmarks" / "pretraining.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main([str(multitask_run[0]), "--out", str(tmp_path)]) == 0
+    report = (tmp_path / "pretraining.md").read_text()
+    assert "PickCube-v1 (multi-task, 2 tasks)" in report and "PushCube-v1 (multi-task, 2 tasks)" in report
+    (run,) = json.loads((tmp_path / "pretraining.json").read_text())["runs"]
+    assert run["tasks"] == ["PickCube-v1", "PushCube-v1"]
+    assert all(evals[0]["step"] == 3 and evals[0]["episodes"] == 1 for evals in run["per_task"].values())
+    assert (tmp_path / "pretraining.png").exists()
