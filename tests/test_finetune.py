@@ -390,3 +390,20 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert (tmp_path / "results" / "compare.png").stat().st_size > 0
     payload = json.loads((tmp_path / "results" / "compare.json").read_text())
     assert payload["results"]["PickCube-v1"]["mmada_rwr"]["histories"]["s0"][-1]["env_steps"] == 30
+
+
+def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
+    spec = importlib.util.spec_from_file_location("finetune_gradients", REPO / "benchmarks" / "finetune_gradients.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    code = bench.main(["--pretrained", str(toy_pretrain_run), "--online", str(rwr_run / "online_buffer"), "--demos", str(pick_demos),
+                       "--minibatches", "3", "--batch-size", "1", "--out", str(tmp_path)])
+    assert code == 0
+    result = json.loads((tmp_path / "finetune_gradients.json").read_text())
+    assert result["online_rows"] == 6 and set(result["sources"]) == {
+        "demonstrations", "online, advantage > 0", "online, all rows", "online, all rows, zero-mean signed advantage weights"}
+    for by_part in result["sources"].values():
+        for r in by_part.values():
+            assert r["minibatches"] == 3 and len(r["cos_pairs_all"]) == 3 and -1 <= r["cos_pairs"] <= 1 and r["mean_norm"] > 0
+    with pytest.raises(FileNotFoundError, match="no online buffer"):
+        bench.main(["--pretrained", str(toy_pretrain_run), "--online", str(tmp_path), "--demos", str(pick_demos)])
