@@ -52,6 +52,16 @@ def test_supported_tasks_build_and_step(task):
         env.close()
 
 
+def test_a_robot_camera_is_dropped_from_the_image():
+    # StackCube-v1's default robot (panda_wristcam) adds a hand camera after the task's base camera
+    env = make_env("StackCube-v1", image_size=32)
+    try:
+        assert env.observation_spec[IMAGE_KEY].shape == (3, 32, 32)
+        assert env.rollout(2)[IMAGE_KEY].shape == (2, 3, 32, 32)
+    finally:
+        env.close()
+
+
 def test_dense_reward_is_normalised(pick_env):
     td = pick_env.rollout(3)
     r = td["next", "reward"]

@@ -111,6 +111,11 @@ class CanonicalObservation(gym.Wrapper):
 
     Applied after ManiSkill's ``CPUGymWrapper`` (numpy, unbatched). Also turns the
     ``success`` info entry into an array, which TorchRL's info reader requires.
+
+    The image is the task's own camera (``base_camera``). Robots with cameras of
+    their own add channels after it — StackCube-v1's default ``panda_wristcam``
+    puts its hand camera in channels 3–5 of ManiSkill's flattened ``rgb`` — and
+    those are dropped, so every task gives the policy one third-person view.
     """
 
     def __init__(self, env: gym.Env, obs_mode: ObsMode):
@@ -118,9 +123,9 @@ class CanonicalObservation(gym.Wrapper):
         self.obs_mode = obs_mode
         space = env.observation_space
         if obs_mode == "rgb":
-            h, w, c = space["rgb"].shape
+            h, w, _ = space["rgb"].shape
             self.observation_space = gym.spaces.Dict(
-                camera=gym.spaces.Box(0, 255, (c, h, w), np.uint8),
+                camera=gym.spaces.Box(0, 255, (3, h, w), np.uint8),
                 proprio=gym.spaces.Box(-np.inf, np.inf, space["state"].shape, np.float32),
             )
         else:
@@ -128,7 +133,7 @@ class CanonicalObservation(gym.Wrapper):
 
     def _obs(self, obs):
         if self.obs_mode == "rgb":
-            image = np.ascontiguousarray(np.moveaxis(obs["rgb"], -1, 0))
+            image = np.ascontiguousarray(np.moveaxis(obs["rgb"][..., :3], -1, 0))  # the first camera only
             return {"camera": image, "proprio": obs["state"].astype(np.float32)}
         return {"proprio": np.asarray(obs, dtype=np.float32)}
 
