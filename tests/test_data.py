@@ -174,6 +174,16 @@ def test_non_finite_actions_are_refused(tmp_path):
         buf.add_episode(ep, seed=9, instruction="x")
 
 
+def test_an_instruction_that_is_not_a_string_is_refused(tmp_path):
+    # e.g. the NonTensorData an episode's own language_instruction entry holds when indexed
+    buf = _synthetic_buffer(tmp_path / "syn", [3])
+    episode = next(buf.episodes())
+    ep = episode.exclude(EPISODE_KEY, "instruction_id", "seed", INSTRUCTION_KEY, "index")
+    with pytest.raises(TypeError, match="instruction must be a string, got NonTensorData"):
+        buf.add_episode(ep, seed=9, instruction=episode[0].get(INSTRUCTION_KEY, as_non_tensor=True))
+    assert buf.metadata.num_episodes == 1 and len(buf.metadata.instructions) == 1
+
+
 def test_unknown_task_is_refused_before_any_work(tmp_path):
     with pytest.raises(UnknownTaskError):
         collect(tmp_path / "x", EnvConfig(task="PickBanana-v9"), episodes=1, progress=False)

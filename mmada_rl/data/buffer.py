@@ -185,6 +185,8 @@ class DemoBuffer:
         missing = [k for k in self.transition_keys() if k not in episode.keys(True, True)]
         if missing:
             raise KeyError(f"episode lacks {missing}; it must follow the TorchRL rollout layout of make_env.")
+        if not isinstance(instruction, str):
+            raise TypeError(f"instruction must be a string, got {type(instruction).__name__}.")
         if not torch.isfinite(episode.get(ACTION_KEY)).all():
             raise ValueError("episode has non-finite actions; refusing to store it.")
         T = episode.shape[0]
