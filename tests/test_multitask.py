@@ -131,3 +131,25 @@ def test_pretraining_report_gives_one_row_per_task(multitask_run, tmp_path):
     assert run["tasks"] == ["PickCube-v1", "PushCube-v1"]
     assert all(evals[0]["step"] == 3 and evals[0]["episodes"] == 1 for evals in run["per_task"].values())
     assert (tmp_path / "pretraining.png").exists()
+
+
+def test_demo_fit_report_scores_each_task_on_the_same_windows(multitask_run, pick_demos, tmp_path):
+    spec = importlib.util.spec_from_file_location("demo_fit", REPO / "benchmarks" / "demo_fit.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = ["--run", f"{multitask_run[0]}=PickCube-v1,PushCube-v1", "--demos", f"{pick_demos.parent}/{{task}}",
+            "--ratios", "0.5", "1.0", "--minibatches", "2", "--batch-size", "2", "--decode-minibatches", "1"]
+    assert bench.main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert bench.main([*args, "--out", str(tmp_path / "b")]) == 0
+    a, b = (json.loads((tmp_path / d / "demo_fit.json").read_text()) for d in "ab")
+    assert [(r["task"], r["ratio"]) for r in a["results"]] == [
+        ("PickCube-v1", 0.5), ("PickCube-v1", 1.0), ("PushCube-v1", 0.5), ("PushCube-v1", 1.0)]
+    assert all(0 <= r["action_accuracy"] <= 1 and 0 <= r["goal_accuracy"] <= 1 for r in a["results"])
+    assert a["results"] == b["results"] and a["decoded"] == b["decoded"]  # same seed: same windows, masks, chunks
+    for d in a["decoded"]:
+        assert len(d["chunk_mae_per_dim"]) == 7 and d["chunk_mae"] > 0 and d["num_denoise_steps"] >= 1
+    assert (tmp_path / "a" / "demo_fit.png").exists() and "PushCube-v1" in (tmp_path / "a" / "demo_fit.md").read_text()
+    with pytest.raises(SystemExit):
+        bench.main(["--run", f"{multitask_run[0]}", "--out", str(tmp_path)])  # no =TASK
+    with pytest.raises(SystemExit):
+        bench.main(["--run", f"{multitask_run[0]}=StackCube-v1", "--demos", f"{pick_demos.parent}/{{task}}"])  # no buffer
