@@ -344,6 +344,8 @@ def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, 
                       "eval.episodes=0", "env.max_episode_steps=10", f"collector.total_env_steps={steps}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"{steps} env steps" in proc.stdout and "0 updates" not in proc.stdout
+    # the start-up line describes the updates this algorithm makes (PPO trains on fresh decisions only)
+    assert ("epochs over each iteration's decisions" in proc.stdout) == (name == "ppo_group")
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):

@@ -153,7 +153,9 @@ def main(cfg: DictConfig) -> None:
     if not history and int(cfg.eval.episodes) > 0:
         history.append(run_eval(cfg, model, 0, 0, start))
         print(f"{PREFIX} pretrained policy: success_once {history[-1]['success_once']:.2f} over {history[-1]['episodes']} episodes")
-    print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} batch {n_online} online + {n_demo} demo rows; "
+    updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
+                    f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}")
+    print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; "
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps")
 
     penv = make_policy_env_for(cfg, model)
