@@ -14,6 +14,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from mmada_rl.data import BufferMismatchError, DemoBuffer, make_window_buffer
+from mmada_rl.data.windows import idle_actions
 from mmada_rl.data.collect import collect
 from mmada_rl.data.h5_import import import_h5
 from mmada_rl.data.metadata import BufferMetadata
@@ -94,10 +95,14 @@ def test_not_a_buffer_is_a_clear_error(tmp_path):
 
 
 def _check_windows(buf, chunk_size, num):
-    rb = make_window_buffer(buf, chunk_size=chunk_size, batch_size=num, seed=0)
-    batch = rb.sample()
-    K = chunk_size
-    assert batch[ACTION_CHUNK_KEY].shape[:2] == (num, K)
+    batch = make_window_buffer(buf, chunk_size=chunk_size, batch_size=num, seed=0).sample()
+    assert batch[ACTION_CHUNK_KEY].shape[:2] == (num, chunk_size)
+    return _check_windows_of(batch, buf, chunk_size)
+
+
+def _check_windows_of(batch, buf, chunk_size):
+    """Every window of ``batch`` holds its own episode's actions, pad flags and goal frame."""
+    K, num = chunk_size, batch.shape[0]
     bounds = dict(enumerate(buf.episode_bounds()))
     storage = buf.storage
     for i in range(num):
@@ -158,6 +163,30 @@ def test_window_sampler_handles_episodes_shorter_than_the_chunk(tmp_path):
     assert starts == {(e, t) for e, T in enumerate([2, 9, 1, 4]) for t in range(T)}
     # actions encode (episode, step): a chunk never holds another episode's action
     assert (batch[ACTION_CHUNK_KEY][..., 0] == batch[EPISODE_KEY][:, None].float()).all()
+
+
+def _leading_run(flags: torch.Tensor) -> int:
+    return int(flags.logical_not().nonzero()[0]) if not flags.all() else len(flags)
+
+
+def test_skip_idle_start_draws_no_window_in_the_planners_leading_hold(push_demos):
+    buf = DemoBuffer.open(push_demos)
+    ((start, stop),) = buf.episode_bounds()
+    hold = _leading_run(idle_actions(buf)[start:stop])
+    assert hold >= 5  # ManiSkill's PushCube-v1 planner holds the arm still before it moves
+    plain = {int(t) for t in make_window_buffer(buf, 2, 400, seed=0).sample()[STEP_KEY].reshape(-1)}
+    assert plain == set(range(stop - start))  # by default every step starts windows, the hold steps too
+    batch = make_window_buffer(buf, 2, 400, seed=0, skip_idle_start=True).sample()
+    assert {int(t) for t in batch[STEP_KEY].reshape(-1)} == set(range(hold, stop - start))
+    assert not (batch[ACTION_CHUNK_KEY][..., :-1].abs() <= 1e-4).all(-1).all(-1).any()  # no hold-only chunk left
+    _check_windows_of(batch, buf, chunk_size=2)  # the windows themselves are unchanged
+
+
+def test_an_episode_that_only_holds_keeps_its_last_step_as_a_start(tmp_path):
+    buf = _synthetic_buffer(tmp_path / "syn", [4, 3])  # action[..., 0] is the episode id: episode 0 "holds" throughout
+    batch = make_window_buffer(buf, chunk_size=2, batch_size=300, seed=0, skip_idle_start=True).sample()
+    starts = {(int(e), int(t)) for e, t in zip(batch[EPISODE_KEY], batch[STEP_KEY].reshape(-1))}
+    assert starts == {(0, 3), (1, 0), (1, 1), (1, 2)}
 
 
 def test_chunk_longer_than_every_episode_is_refused(tmp_path):

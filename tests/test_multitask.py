@@ -87,12 +87,14 @@ def test_tokenizers_fitted_on_every_task(buffers):
 
 @pytest.fixture(scope="module")
 def multitask_run(pick_demos, push_demos, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
-    """Three toy steps of one model on PickCube-v1 and PushCube-v1, a one-episode evaluation of each task."""
+    """Three toy steps of one model on PickCube-v1 and PushCube-v1 (no window in the planners' leading
+    hold), a one-episode evaluation of each task."""
     run_dir = tmp_path_factory.mktemp("multitask") / "multi"
     proc = subprocess.run(
         [sys.executable, str(RECIPE), f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]",
          f"data.dir='{pick_demos.parent}/{{task}}'", "data.collect_episodes=0", "optim.total_steps=3",
-         "checkpoint.interval=3", "eval.episodes=1", "eval.max_episode_steps=5", "num_threads=1"],
+         "checkpoint.interval=3", "eval.episodes=1", "eval.max_episode_steps=5", "num_threads=1",
+         "data.skip_idle_start=true"],  # the option end to end (its effect: tests/test_data.py)
         cwd=REPO, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -16,6 +16,12 @@ into one training sample:
   action, i.e. ``("next", "observation", "image")`` of the last transition), and
   ``("goal", "is_clipped")`` is True exactly when ``t + K`` lies beyond that
   final frame.
+
+``skip_idle_start=True`` (:func:`make_window_buffer`) draws no window that
+starts in an episode's leading run of hold actions (every entry but the last,
+the gripper, ~0): ManiSkill's PushCube-v1 planner records 7 such steps before
+it moves, so a short chunk taken there teaches the policy to hold still in the
+start pose, which it then never leaves (see the README's chunk-size ablation).
 """
 from __future__ import annotations
 
@@ -51,9 +57,14 @@ class ChunkWindowSampler(SliceSampler):
         chunk_size: ``K``, the number of actions per chunk.
         traj_key: the episode-id key. Defaults to ``"episode"``.
         cache_values: cache episode boundaries (static buffers). Defaults to ``True``.
+        no_start: optional bool ``[storage size]``: the leading run of True
+            steps of each episode is never a window start (the rest of the
+            episode still is, and those steps still appear inside windows).
+            An episode that is all True keeps its last step as a start.
     """
 
-    def __init__(self, chunk_size: int, *, traj_key=EPISODE_KEY, cache_values: bool = True):
+    def __init__(self, chunk_size: int, *, traj_key=EPISODE_KEY, cache_values: bool = True,
+                 no_start: torch.Tensor | None = None):
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}.")
         super().__init__(
@@ -64,6 +75,18 @@ class ChunkWindowSampler(SliceSampler):
             cache_values=cache_values,
         )
         self.chunk_size = chunk_size
+        self.no_start = None if no_start is None else torch.as_tensor(no_start, dtype=torch.bool).reshape(-1)
+
+    def _start_offsets(self, starts: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """Per episode, how many leading steps ``no_start`` excludes (at most ``length - 1``)."""
+        offsets = torch.zeros_like(lengths)
+        if self.no_start is None:
+            return offsets
+        for i, (start, length) in enumerate(zip(starts.tolist(), lengths.tolist())):
+            index = (start + torch.arange(length)) % self.no_start.numel()
+            moving = (~self.no_start[index]).nonzero()
+            offsets[i] = int(moving[0]) if moving.numel() else length - 1
+        return offsets
 
     def sample(self, storage, batch_size: int):
         window = self.chunk_size + 1
@@ -75,10 +98,12 @@ class ChunkWindowSampler(SliceSampler):
         num_windows = batch_size // window
         start_idx, _, lengths = self._get_stop_and_length(storage)
         starts, lengths = start_idx[:, 0], lengths.to(torch.long)
-        ends = lengths.cumsum(0)
+        offsets = self._start_offsets(starts, lengths)
+        usable = lengths - offsets  # window starts per episode
+        ends = usable.cumsum(0)
         flat = torch.randint(int(ends[-1]), (num_windows,), generator=self._rng, device=lengths.device)
         traj = torch.searchsorted(ends, flat, right=True)  # (N,)
-        t = flat - (ends[traj] - lengths[traj])  # step of the window start inside its episode
+        t = flat - (ends[traj] - usable[traj]) + offsets[traj]  # step of the window start inside its episode
         pos = t.unsqueeze(-1) + torch.arange(window, device=t.device)  # (N, K+1)
         length = lengths[traj].unsqueeze(-1)
         index = (starts[traj].unsqueeze(-1) + pos.clamp(max=length - 1)) % storage.shape[0]
@@ -126,7 +151,15 @@ class ChunkWindowTransform(Transform):
 
 
 
-def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None) -> ReplayBuffer:
+def idle_actions(buffer, tol: float = 1e-4) -> torch.Tensor:
+    """Bool ``[storage size]``: transitions whose action holds the arm still: every entry but the last
+    (the gripper) within ``tol`` of 0 (a planner's hold steps carry ~4e-6 of numerical noise)."""
+    actions = buffer.storage[: len(buffer.storage)].get("action")
+    return (actions[..., :-1].abs() <= tol).all(-1)
+
+
+def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None,
+                       skip_idle_start: bool = False) -> ReplayBuffer:
     """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
 
     Args:
@@ -135,6 +168,8 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
         batch_size: number of windows per ``sample()``; ``None``: ``sample(batch_size=n * (chunk_size + 1))``
             names the number of transitions each time.
         seed: seeds the sampler's generator for reproducible batches.
+        skip_idle_start: draw no window that starts in an episode's leading
+            hold actions (:func:`idle_actions`; a motion planner's wait before it moves).
 
     Examples:
         >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)
@@ -152,7 +187,7 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             f"chunk_size={chunk_size} is longer than every episode in {buffer.path} "
             f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
         )
-    sampler = ChunkWindowSampler(chunk_size)
+    sampler = ChunkWindowSampler(chunk_size, no_start=idle_actions(buffer) if skip_idle_start else None)
     transform = Compose(
         ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
         InstructionLookup(buffer.metadata.instructions),
@@ -199,6 +234,7 @@ class MultiTaskWindows:
             (proportional to stored transitions, as one merged buffer would be)
             or one non-negative weight per buffer.
         seed: seeds the task draw and every member's sampler.
+        skip_idle_start: as for :func:`make_window_buffer`, in every buffer.
 
     Examples:
         >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)
@@ -206,7 +242,8 @@ class MultiTaskWindows:
         >>> batch["language_instruction"][:2], batch["task_index"][:2]
     """
 
-    def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None):
+    def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None,
+                 skip_idle_start: bool = False):
         buffers = list(buffers)
         if not buffers:
             raise ValueError("MultiTaskWindows needs at least one buffer.")
@@ -222,7 +259,8 @@ class MultiTaskWindows:
         self.probabilities = weights / weights.sum()
         self.state_dim = max(b.metadata.state_dim for b in buffers)
         self.members = [
-            make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i) for i, b in enumerate(buffers)
+            make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i, skip_idle_start=skip_idle_start)
+            for i, b in enumerate(buffers)
         ]
         self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()
 
