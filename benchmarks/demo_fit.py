@@ -41,7 +41,7 @@ from common import RESULTS, markdown_table, write_results  # noqa: E402
 from mmada_rl.data import DemoBuffer, make_window_buffer  # noqa: E402
 from mmada_rl.diffusion.schedules import UniformNoiseSchedule  # noqa: E402
 from mmada_rl.evaluation import resolve_model_dir  # noqa: E402
-from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, SEQUENCE_KEY  # noqa: E402
+from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY  # noqa: E402
 from mmada_rl.objectives import MaskedDiffusionLoss  # noqa: E402
 from mmada_rl.policy import MMaDAModel  # noqa: E402
 
@@ -64,8 +64,7 @@ def token_accuracy(model: MMaDAModel, demos: Path, ratio: float, minibatches: in
     totals: dict[str, float] = {}
     for _ in range(minibatches):
         w = windows.sample()
-        rows = w.empty().set(SEQUENCE_KEY, model.sequence(w)).set(ACTION_IS_PAD_KEY, w.get(ACTION_IS_PAD_KEY))
-        out = loss(rows)
+        out = loss(model.loss_inputs(w))
         for key in ("action_accuracy", "goal_accuracy", "loss_action", "loss_goal"):
             if key in out.keys():
                 totals[key] = totals.get(key, 0.0) + float(out[key]) / minibatches

@@ -117,8 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"{args.online} holds {success.shape[0]} rows with a positive advantage, fewer than --batch-size.")
 
     def demo_batch():
-        w = windows.sample()
-        return w.empty().set(SEQUENCE_KEY, model.sequence(w)).set(ACTION_IS_PAD_KEY, w.get(ACTION_IS_PAD_KEY))
+        return model.loss_inputs(windows.sample())
 
     def rows_from(data):
         return lambda: data[torch.randint(data.shape[0], (args.batch_size,))]

@@ -76,16 +76,22 @@ class ChunkWindowSampler(SliceSampler):
         )
         self.chunk_size = chunk_size
         self.no_start = None if no_start is None else torch.as_tensor(no_start, dtype=torch.bool).reshape(-1)
+        self._offsets_cache: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # (starts, lengths, offsets)
 
     def _start_offsets(self, starts: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-        """Per episode, how many leading steps ``no_start`` excludes (at most ``length - 1``)."""
-        offsets = torch.zeros_like(lengths)
+        """Per episode, how many leading steps ``no_start`` excludes (at most ``length - 1``);
+        computed once per set of episodes."""
         if self.no_start is None:
-            return offsets
+            return torch.zeros_like(lengths)
+        cached = self._offsets_cache
+        if cached is not None and torch.equal(cached[0], starts) and torch.equal(cached[1], lengths):
+            return cached[2]
+        offsets = torch.zeros_like(lengths)
         for i, (start, length) in enumerate(zip(starts.tolist(), lengths.tolist())):
             index = (start + torch.arange(length)) % self.no_start.numel()
             moving = (~self.no_start[index]).nonzero()
             offsets[i] = int(moving[0]) if moving.numel() else length - 1
+        self._offsets_cache = (starts.clone(), lengths.clone(), offsets)
         return offsets
 
     def sample(self, storage, batch_size: int):

@@ -25,14 +25,22 @@ from typing import NamedTuple
 
 import torch
 from safetensors.torch import load_file, save_file
-from tensordict import NonTensorData, NonTensorStack, TensorDictBase
+from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
 from torch import nn
 
 from mmada_rl.data.windows import pad_state
 from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
-from mmada_rl.keys import ACTION_CHUNK_KEY, GOAL_IMAGE_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+from mmada_rl.keys import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    GOAL_IMAGE_KEY,
+    IMAGE_KEY,
+    INSTRUCTION_KEY,
+    SEQUENCE_KEY,
+    STATE_KEY,
+)
 from mmada_rl.tokenizers.bundle import Tokenizers
 from mmada_rl.tokenizers.normalize import ActionOutOfRangeWarning
 from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
@@ -220,6 +228,13 @@ class MMaDAModel(nn.Module):
                 raise ValueError(f"action_tokens hold {actions.shape[-2]} actions but the model's chunk_size is {self.config.chunk_size}.")
         goal = self.image_tokenizer.encode(td.get(GOAL_IMAGE_KEY)) if self.config.predict_goal else None
         return self.layout.assemble(goal_ids=goal, action_ids=actions, **cond)
+
+    def loss_inputs(self, windows: TensorDictBase) -> TensorDict:
+        """What a masked-diffusion loss reads from a batch of chunk windows: the clean
+        sequence ``[B, L]`` and the chunk's padding flags ``[B, K]``."""
+        ids = self.sequence(windows)
+        return TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY)},
+                          batch_size=[ids.shape[0]], device=ids.device)
 
     @torch.no_grad()
     def prompt(self, td: TensorDictBase) -> torch.Tensor:

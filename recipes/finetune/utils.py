@@ -274,11 +274,9 @@ def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) 
     keys = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY]
     parts = [] if online is None else [online.select(*keys).set(IS_DEMO_KEY, torch.zeros(online.shape[0], dtype=torch.bool))]
     if demo_windows is not None:
-        windows = demo_windows.sample()
-        ids = model.sequence(windows)
-        n = ids.shape[0]
-        parts.append(TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY),
-                                 ADVANTAGE_KEY: torch.zeros(n), IS_DEMO_KEY: torch.ones(n, dtype=torch.bool)}, batch_size=[n]))
+        rows = model.loss_inputs(demo_windows.sample())
+        n = rows.shape[0]
+        parts.append(rows.set(ADVANTAGE_KEY, torch.zeros(n)).set(IS_DEMO_KEY, torch.ones(n, dtype=torch.bool)))
     return torch.cat(parts)
 
 

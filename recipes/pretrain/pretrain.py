@@ -25,7 +25,6 @@ from tqdm.auto import tqdm
 from mmada_rl.data import window_generators
 from mmada_rl.training import resume_training, save_checkpoint, start_run
 from utils import (
-    loss_inputs,
     make_data,
     make_demo_buffers,
     make_logger,
@@ -90,7 +89,7 @@ def main(cfg: DictConfig) -> None:
     for step in pbar:
         t0 = time.perf_counter()
         batch = data.sample()
-        losses = loss_module(loss_inputs(model, batch))
+        losses = loss_module(model.loss_inputs(batch))
         loss = total_loss(losses)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

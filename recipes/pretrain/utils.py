@@ -10,7 +10,6 @@ from tensordict import TensorDict
 from mmada_rl.data import DemoBuffer, MultiTaskWindows, make_window_buffer
 from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
-from mmada_rl.keys import ACTION_IS_PAD_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
@@ -118,12 +117,6 @@ def make_optim(cfg: DictConfig, model: MMaDAModel):
 
 def make_logger(cfg: DictConfig, run_dir: Path):
     return training.make_logger(cfg.logger.backend, run_dir)
-
-
-def loss_inputs(model: MMaDAModel, batch: TensorDict) -> TensorDict:
-    """The clean sequence (and the chunk padding) of a batch of windows, as the loss reads them."""
-    ids = model.sequence(batch)
-    return TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: batch.get(ACTION_IS_PAD_KEY)}, batch_size=[ids.shape[0]], device=ids.device)
 
 
 def total_loss(losses: TensorDict) -> torch.Tensor:
