@@ -58,6 +58,7 @@ def summarize(run: Path) -> dict:
         "predict_goal": bool(config["model"].get("predict_goal", True)),
         "chunk_size": int(config["model"]["chunk_size"]),
         "execute_steps": int(config["eval"]["execute_steps"]),
+        "skip_idle_start": bool(config.get("data", {}).get("skip_idle_start", False)),
         "steps": int(ckpts[-1].name.split("_")[-1]),
         "planned_steps": config["optim"]["total_steps"],
         # a single-task run logs eval/...; a multi-task run also logs eval/<task>/... (eval/... is their mean)
@@ -91,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
             rows += [[f"{task} (multi-task, {len(r['tasks'])} tasks)", *common, format_evaluations(evals)]
                      for task, evals in r["per_task"].items()]
         else:
-            rows.append([r["task"], *common, format_evaluations(r["evaluations"])])
+            name = r["task"] + (" (no window in the leading hold)" if r["skip_idle_start"] else "")
+            rows.append([name, *common, format_evaluations(r["evaluations"])])
     header = ["task", "action tokens", "goal prediction", "K / executed", "denoiser", "steps (trained / planned)",
               "action-token accuracy (last 10 logs)", "success_once [95% CI]"]
     table = markdown_table(header, rows)
@@ -104,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     for r in runs:
         name = r["task"] if len(r["tasks"]) == 1 else "multi-task"
-        ablated = ("" if r["predict_goal"] else ", no goal") + ("" if r["chunk_size"] == 5 else f", K={r['chunk_size']}")
+        ablated = (("" if r["predict_goal"] else ", no goal") + ("" if r["chunk_size"] == 5 else f", K={r['chunk_size']}")
+                   + (", skip idle start" if r["skip_idle_start"] else ""))
         label = f"{name} {r['action_tokenizer']}{ablated}"
         if r["action_accuracy"]:
             steps, values = zip(*r["action_accuracy"])
