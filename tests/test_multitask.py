@@ -122,15 +122,17 @@ def test_multitask_without_a_task_placeholder_is_one_clear_error(pick_demos, tmp
     assert proc.returncode != 0 and "put {task} in data.dir" in proc.stderr
 
 
-def test_pretraining_report_gives_one_row_per_task(multitask_run, tmp_path):
+def test_pretraining_report_gives_one_row_per_task(multitask_run, toy_pretrain_run, tmp_path):
     spec = importlib.util.spec_from_file_location("pretraining_benchmark", REPO / "benchmarks" / "pretraining.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    assert bench.main([str(multitask_run[0]), "--out", str(tmp_path)]) == 0
+    assert bench.main([str(multitask_run[0]), str(toy_pretrain_run), "--out", str(tmp_path)]) == 0
     report = (tmp_path / "pretraining.md").read_text()
     assert "PickCube-v1 (multi-task, 2 tasks)" in report and "PushCube-v1 (multi-task, 2 tasks)" in report
-    (run,) = json.loads((tmp_path / "pretraining.json").read_text())["runs"]
+    assert "\n| PickCube-v1 | " in report  # the single-task toy run, which keeps the hold windows
+    run, single = json.loads((tmp_path / "pretraining.json").read_text())["runs"]
     assert run["tasks"] == ["PickCube-v1", "PushCube-v1"]
+    assert run["skip_idle_start"] and not single["skip_idle_start"]
     assert all(evals[0]["step"] == 3 and evals[0]["episodes"] == 1 for evals in run["per_task"].values())
     assert (tmp_path / "pretraining.png").exists()
 
