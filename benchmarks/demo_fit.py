@@ -56,11 +56,11 @@ def parse_run(text: str) -> tuple[Path, list[str]]:
 
 
 @torch.no_grad()
-def token_accuracy(model: MMaDAModel, demos: Path, ratio: float, minibatches: int, batch_size: int, seed: int) -> dict:
+def token_accuracy(model: MMaDAModel, demos: DemoBuffer, ratio: float, minibatches: int, batch_size: int, seed: int) -> dict:
     """Mean masked-token accuracy (and cross-entropy) of ``model`` on ``demos`` windows at one masking ratio."""
     torch.manual_seed(seed)
     loss = MaskedDiffusionLoss(model.denoiser, schedule=UniformNoiseSchedule(ratio, ratio))
-    windows = make_window_buffer(DemoBuffer.open(demos), model.config.chunk_size, batch_size, seed=seed)
+    windows = make_window_buffer(demos, model.config.chunk_size, batch_size, seed=seed)
     totals: dict[str, float] = {}
     for _ in range(minibatches):
         w = windows.sample()
@@ -72,10 +72,10 @@ def token_accuracy(model: MMaDAModel, demos: Path, ratio: float, minibatches: in
 
 
 @torch.no_grad()
-def decoded_chunk_error(model: MMaDAModel, demos: Path, minibatches: int, batch_size: int, seed: int) -> list[float]:
+def decoded_chunk_error(model: MMaDAModel, demos: DemoBuffer, minibatches: int, batch_size: int, seed: int) -> list[float]:
     """Mean absolute error per action dimension of greedily decoded chunks against the demonstrated ones."""
     torch.manual_seed(seed)
-    windows = make_window_buffer(DemoBuffer.open(demos), model.config.chunk_size, batch_size, seed=seed)
+    windows = make_window_buffer(demos, model.config.chunk_size, batch_size, seed=seed)
     errors = []
     for _ in range(minibatches):
         w = windows.sample()
@@ -115,14 +115,13 @@ def main(argv: list[str] | None = None) -> int:
         model = MMaDAModel.load(resolve_model_dir(run))
         model.eval()
         for task in tasks:
+            demos = DemoBuffer.open(args.demos.format(task=task))  # opened once for every ratio and the decoding
             for ratio in args.ratios:
-                scores = token_accuracy(model, Path(args.demos.format(task=task)), ratio, args.minibatches,
-                                        args.batch_size, args.seed)
+                scores = token_accuracy(model, demos, ratio, args.minibatches, args.batch_size, args.seed)
                 results.append({"run": str(run), "task": task, "ratio": ratio, **scores})
                 bar.update()
             if args.decode_minibatches:
-                mae = decoded_chunk_error(model, Path(args.demos.format(task=task)), args.decode_minibatches,
-                                          args.batch_size, args.seed)
+                mae = decoded_chunk_error(model, demos, args.decode_minibatches, args.batch_size, args.seed)
                 decoded.append({"run": str(run), "task": task, "num_denoise_steps": model.sampler.config.num_steps,
                                 "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
             bar.update()
