@@ -29,6 +29,7 @@ from mmada_rl.baselines import (
 )
 from mmada_rl.evaluation import evaluate, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
+from mmada_rl.training import WeightEMA
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
@@ -195,6 +196,33 @@ def test_random_shift_moves_images_by_at_most_pad_pixels():
         assert len(ys) == 1 and abs(int(ys) - 8) <= 2 and abs(int(xs) - 8) <= 2
 
 
+# -- the moving average of the weights (Diffusion Policy's EMA) ---------------------------
+def test_weight_ema_follows_diffusion_policys_schedule_and_swaps_weights_in_and_out():
+    module = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2))  # an int64 buffer: num_batches_tracked
+    ema = WeightEMA(module, power=0.75, max_decay=0.9)
+    assert [ema.decay(n) for n in (1, 2, 32)] == [0.0, pytest.approx(1 - 2 ** -0.75), 0.9]  # warm-up, then the cap
+    weight, values = module[0].weight, [1.0, 3.0, 5.0]
+    expected = None
+    for n, value in enumerate(values, start=1):
+        with torch.no_grad():
+            weight.fill_(value)
+        module[1].num_batches_tracked.fill_(n)
+        ema.update()
+        d = ema.decay(n)
+        expected = value if expected is None else d * expected + (1 - d) * value  # first update: a copy
+    assert ema.updates == 3
+    torch.testing.assert_close(ema.shadow["0.weight"], torch.full((2, 2), expected))
+    assert 1.0 < expected < 5.0 and int(ema.shadow["1.num_batches_tracked"]) == 3  # averaged floats, copied counters
+    with ema.applied():
+        torch.testing.assert_close(module[0].weight, torch.full((2, 2), expected))
+    torch.testing.assert_close(module[0].weight, torch.full((2, 2), 5.0))  # the trained weights come back
+    with pytest.raises(RuntimeError, match="boom"), ema.applied():
+        raise RuntimeError("boom")
+    torch.testing.assert_close(module[0].weight, torch.full((2, 2), 5.0))  # even after an error
+    with pytest.raises(ValueError, match="max_decay"):
+        WeightEMA(module, max_decay=1.0)
+
+
 # -- the recipe, as users run it --------------------------------------------------------
 def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(RECIPE), *map(str, overrides)], cwd=REPO, capture_output=True, text=True, timeout=timeout)
@@ -232,6 +260,14 @@ def test_recipe_trains_logs_checkpoints_and_evaluates(toy_runs, algo):
     assert final["step"] == 4 and final["eval/episodes"] == 1 and 0.0 <= final["eval/success_once"] <= 1.0
     assert final["eval/num_denoise_steps"] == (10 if algo == "diffusion_policy" else 1)
     assert (run_dir / "logs" / "scalars" / "train" / f"{key.split('/')[1]}.csv").exists()  # TorchRL CSV logger
+    # Diffusion Policy evaluates and saves the moving average of its weights; the optimizer's own are kept to resume
+    extra = torch.load(ckpt / "trainer.pt", weights_only=False)["extra"]
+    if algo == "diffusion_policy":
+        saved = load_file(str(ckpt / "model" / "policy.safetensors"))
+        assert extra["ema_updates"] == 4 and [h["train/ema_decay"] for h in history] == [0.0] + [1 - n ** -0.75 for n in (2, 3, 4)]
+        assert any(not torch.equal(saved[k], extra["train_weights"][k]) for k in saved)
+    else:
+        assert extra == {} and "train/ema_decay" not in history[0]
 
 
 def test_recipe_resumes_with_the_same_batches_and_noise(toy_runs, pick_demos, tmp_path):

@@ -1,4 +1,4 @@
-"""Training utilities shared by the recipes: checkpoints, schedules, loggers."""
+"""Training utilities shared by the recipes: checkpoints, schedules, loggers, weight averages."""
 from mmada_rl.training.checkpoint import (
     Checkpoint,
     latest_checkpoint,
@@ -7,11 +7,13 @@ from mmada_rl.training.checkpoint import (
     resume_training,
     save_checkpoint,
 )
+from mmada_rl.training.ema import WeightEMA
 from mmada_rl.training.optim import make_optimizer, make_scheduler
 from mmada_rl.training.run import start_run
 
 __all__ = [
     "Checkpoint",
+    "WeightEMA",
     "latest_checkpoint",
     "load_checkpoint",
     "make_logger",

@@ -11,19 +11,23 @@ the ``action_is_pad`` mask) or ``diffusion_policy`` (DDPM over the flattened chu
 at ``t``, actions ``t..t+K-1``) as the pretraining recipe, are evaluated by
 ``mmada_rl.evaluation.evaluate`` on the same fixed seeds every ``eval.interval``
 steps and at the end, and checkpoint atomically every ``checkpoint.interval`` steps.
+Diffusion Policy keeps a moving average of its weights (``ema``, as Chi et al.):
+the average is what is evaluated and saved as the checkpoint's policy.
 """
 from __future__ import annotations
 
 import json
 import time
+from contextlib import nullcontext
 
 import hydra
 import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from mmada_rl.training import save_checkpoint, start_run
-from utils import PREFIX, evaluate, make_data, make_demo_buffer, make_logger, make_loss, make_optim, make_policy, resume
+from mmada_rl.training import start_run
+from utils import (PREFIX, evaluate, make_data, make_demo_buffer, make_ema, make_logger, make_loss, make_optim, make_policy,
+                   restore_ema, resume, save)
 
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
@@ -37,10 +41,14 @@ def main(cfg: DictConfig) -> None:
     optimizer, scheduler = make_optim(cfg, policy)
     logger = make_logger(cfg, run_dir)
     generators = {"sampler": data._rng}  # the window sampler's generator
-    start = resume(cfg, run_dir, policy, optimizer, scheduler, generators)
+    start, extra = resume(cfg, run_dir, policy, optimizer, scheduler, generators)
+    ema = make_ema(cfg, policy)  # after resume: the average starts from the saved one
+    restore_ema(policy, ema, extra)
+    averaged = ema.applied if ema is not None else nullcontext
     params = sum(p.numel() for p in policy.parameters())
     print(f"{PREFIX} {cfg.algo}: {buffer.metadata.num_episodes} demos, {len(buffer)} transitions; "
-          f"{params / 1e6:.2f}M parameters; chunk {policy.chunk_size}x{policy.action_dim}")
+          f"{params / 1e6:.2f}M parameters; chunk {policy.chunk_size}x{policy.action_dim}"
+          + ("; evaluates the moving average of its weights" if ema is not None else ""))
 
     total, history, eval_every = int(cfg.optim.total_steps), [], int(cfg.eval.interval or 0)
     policy.train()
@@ -54,25 +62,31 @@ def main(cfg: DictConfig) -> None:
         grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), float(cfg.optim.grad_clip))
         optimizer.step()
         scheduler.step()
+        if ema is not None:
+            ema.update()
         done = step + 1
         metrics = {f"train/{k}": float(v.detach()) for k, v in losses.items()}
         metrics.update({"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm),
                         "train/lr": scheduler.get_last_lr()[0], "time/step_s": time.perf_counter() - t0})
+        if ema is not None:
+            metrics["train/ema_decay"] = ema.decay()
         if eval_every and int(cfg.eval.episodes) > 0 and done % eval_every == 0 and done < total:
-            metrics.update(evaluate(cfg, policy))
+            with averaged():
+                metrics.update(evaluate(cfg, policy))
         if done % int(cfg.logger.log_interval) == 0 or done == total or "eval/success_once" in metrics:
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=done)
             history.append({"step": done, **metrics})
         pbar.set_postfix(loss=f"{metrics['train/loss']:.4f}")
         if done % int(cfg.checkpoint.interval) == 0 or done == total:
-            save_checkpoint(run_dir, done, model=policy, optimizer=optimizer, scheduler=scheduler, config=config,
-                            generators=generators, keep=int(cfg.checkpoint.keep))
+            save(cfg, run_dir, done, policy=policy, ema=ema, optimizer=optimizer, scheduler=scheduler, config=config,
+                 generators=generators)
     pbar.close()
 
     final = {"step": total}
     if total > start and int(cfg.eval.episodes) > 0:
-        final.update(evaluate(cfg, policy))
+        with averaged():
+            final.update(evaluate(cfg, policy))
         for key, value in final.items():
             if key.startswith("eval/"):
                 logger.log_scalar(key, value, step=total)

@@ -1,6 +1,7 @@
 """Factories of the imitation-baseline recipe: each ``make_*`` turns one config section into objects."""
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -10,7 +11,7 @@ from mmada_rl.baselines import ChunkPolicy, NormalizationStats, RandomShift
 from mmada_rl.data import DemoBuffer, make_window_buffer
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl import training
-from mmada_rl.training import make_optimizer, make_scheduler
+from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler, save_checkpoint
 from mmada_rl.training.demos import open_demos
 
 PREFIX = "[imitation]"
@@ -66,8 +67,19 @@ def make_logger(cfg: DictConfig, run_dir: Path):
     return training.make_logger(cfg.logger.backend, run_dir)
 
 
-def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, scheduler, generators: dict) -> int:
-    """Restore weights, optimizer, scheduler and RNG states from ``checkpoint.resume``; returns the step (0: fresh run)."""
+def make_ema(cfg: DictConfig, policy: ChunkPolicy) -> WeightEMA | None:
+    """The moving average of the policy's weights that is evaluated and saved (``ema.enabled``; null: diffusion_policy only)."""
+    enabled = cfg.ema.enabled if cfg.ema.enabled is not None else cfg.algo == "diffusion_policy"
+    return WeightEMA(policy, power=float(cfg.ema.power), max_decay=float(cfg.ema.max_decay)) if enabled else None
+
+
+def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, scheduler, generators: dict) -> tuple[int, dict]:
+    """Restore weights, optimizer, scheduler and RNG states from ``checkpoint.resume``.
+
+    Returns:
+        the step to continue from (0: fresh run) and the checkpoint's ``extra`` dict. The policy holds the
+        checkpoint's saved weights: the moving average when the run kept one (see :func:`save`).
+    """
     def load_weights(model_dir: Path) -> None:
         saved = baselines.load_policy(model_dir)
         if saved.kind != policy.kind:
@@ -77,9 +89,30 @@ def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, sched
     ckpt = training.resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer,
                                     scheduler=scheduler, generators=generators)
     if ckpt is None:
-        return 0
+        return 0, {}
     print(f"{PREFIX} resumed from {ckpt.path} at step {ckpt.step}")
-    return ckpt.step
+    return ckpt.step, ckpt.trainer_state["extra"]
+
+
+def restore_ema(policy: ChunkPolicy, ema: WeightEMA | None, extra: dict) -> None:
+    """After :func:`resume`: the average is the policy's loaded weights; the optimizer's own weights come back from ``extra``."""
+    if ema is None or "train_weights" not in extra:
+        return  # no average kept, or a checkpoint without one: the average starts from the loaded weights
+    policy.load_state_dict(extra["train_weights"])
+    ema.updates = int(extra["ema_updates"])
+
+
+def save(cfg: DictConfig, run_dir: Path, step: int, *, policy: ChunkPolicy, ema: WeightEMA | None, optimizer, scheduler,
+         config: dict, generators: dict) -> None:
+    """Checkpoint ``step``; with a moving average, ``model/`` holds the average (what is evaluated and loaded) and
+    ``trainer.pt`` the optimizer's own weights to resume from."""
+    extra, averaged = {}, nullcontext()
+    if ema is not None:
+        extra = {"train_weights": {k: v.detach().clone() for k, v in policy.state_dict().items()}, "ema_updates": ema.updates}
+        averaged = ema.applied()
+    with averaged:
+        save_checkpoint(run_dir, step, model=policy, optimizer=optimizer, scheduler=scheduler, config=config,
+                        generators=generators, extra=extra, keep=int(cfg.checkpoint.keep))
 
 
 def evaluate(cfg: DictConfig, policy: ChunkPolicy) -> dict:

@@ -1,0 +1,82 @@
+"""Exponential moving average of a module's weights, with Diffusion Policy's warm-up.
+
+Diffusion Policy (Chi et al., RSS 2023) evaluates and ships an EMA of its
+weights, not the weights the optimizer last wrote: the DDPM's samples swing
+from one checkpoint to the next without it. :class:`WeightEMA` keeps that
+average beside a module, with the decay schedule Diffusion Policy takes from
+``diffusers.EMAModel``: after ``n`` updates the decay is
+``min(max_decay, 1 - n ** -power)`` (about 0.9967 after 2,000 updates and
+0.9985 after 6,000 at ``power=0.75``), and 0 at the first update, so the
+average starts as a copy. Floating-point parameters and buffers are averaged;
+integer buffers (counters) are copied.
+
+Examples:
+    >>> ema = WeightEMA(policy)
+    >>> for batch in batches:
+    ...     loss(batch).backward(); optimizer.step()
+    ...     ema.update()
+    >>> with ema.applied():          # the policy holds the averaged weights here
+    ...     evaluate(policy, "PushCube-v1", episodes=20)
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Iterator
+
+import torch
+
+__all__ = ["WeightEMA"]
+
+
+class WeightEMA:
+    """The moving average of ``module``'s ``state_dict``.
+
+    Args:
+        module: the trained module; it is read at each :meth:`update` and
+            swapped to the averaged weights inside :meth:`applied`.
+
+    Keyword Args:
+        power: warm-up exponent of the decay schedule (Diffusion Policy: 0.75).
+        max_decay: upper bound of the decay (Diffusion Policy: 0.9999).
+
+    Attributes:
+        updates: number of :meth:`update` calls so far.
+    """
+
+    def __init__(self, module: torch.nn.Module, *, power: float = 0.75, max_decay: float = 0.9999) -> None:
+        if not power > 0:
+            raise ValueError(f"power must be > 0, got {power!r}.")
+        if not 0.0 <= max_decay < 1.0:
+            raise ValueError(f"max_decay must be in [0, 1), got {max_decay!r}.")
+        self.module = module
+        self.power = float(power)
+        self.max_decay = float(max_decay)
+        self.updates = 0
+        self.shadow = {name: value.detach().clone() for name, value in module.state_dict().items()}
+
+    def decay(self, updates: int | None = None) -> float:
+        """The decay applied at update number ``updates`` (default: the last one made)."""
+        n = self.updates if updates is None else updates
+        return 0.0 if n <= 1 else min(self.max_decay, 1.0 - float(n) ** -self.power)
+
+    @torch.no_grad()
+    def update(self) -> None:
+        """Move the average towards the module's current weights."""
+        self.updates += 1
+        weight = 1.0 - self.decay()
+        current = self.module.state_dict()
+        floats = [name for name, value in self.shadow.items() if value.is_floating_point()]
+        torch._foreach_lerp_([self.shadow[n] for n in floats], [current[n].detach() for n in floats], weight)
+        for name, value in self.shadow.items():
+            if not value.is_floating_point():
+                value.copy_(current[name])
+
+    @contextmanager
+    def applied(self) -> Iterator[torch.nn.Module]:
+        """Within the block the module holds the averaged weights; its own come back afterwards, even on error."""
+        own = {name: value.detach().clone() for name, value in self.module.state_dict().items()}
+        self.module.load_state_dict(self.shadow)
+        try:
+            yield self.module
+        finally:
+            self.module.load_state_dict(own)
