@@ -72,7 +72,8 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     action = {"codebook_size": args.codebook_size, "tokens_per_action": args.tokens_per_action} if args.action_type == "vq" else {}
     cfg = TokenizerFitConfig(action_type=args.action_type, action=action, action_steps=args.action_steps,
-                             image={"codebook_size": args.image_codebook_size, "grid_size": args.image_grid},
+                             image={"codebook_size": args.image_codebook_size, "grid_size": args.image_grid,
+                                    "foreground_weight": args.image_foreground_weight},
                              image_steps=args.image_steps, proprio_bins=args.proprio_bins, seed=args.seed)
     fitted = fit_tokenizers(buffer, cfg)
     fitted.save(out)
@@ -103,7 +104,7 @@ def add_parser(sub) -> None:
         help="fit action/image/text tokenizers on a demonstration buffer and report how well they cover it",
         description="Fit the action (VQ with EMA codebook by default), image (VQ-VAE), text and proprioception "
         "tokenizers on a buffer; write them and a report (JSON + Markdown + PNG): action reconstruction errors per "
-        "dimension, code usage and perplexity, image PSNR, and the success of replaying every demonstration through "
+        "dimension, code usage and perplexity, image PSNR (whole frame and foreground), and the success of replaying every demonstration through "
         "each action tokenizer (against the two baselines, 256 bins and residual FSQ).",
     )
     p.add_argument("--data", required=True, help="demonstration buffer directory (mmada-rl collect)")
@@ -114,6 +115,7 @@ def add_parser(sub) -> None:
     p.add_argument("--action-steps", type=int, default=3000, help="action tokenizer training steps (default: %(default)s)")
     p.add_argument("--image-codebook-size", type=int, default=512, help="image VQ-VAE codes (default: %(default)s)")
     p.add_argument("--image-grid", type=int, default=8, help="image token grid side: grid^2 tokens per image (default: %(default)s)")
+    p.add_argument("--image-foreground-weight", type=float, default=1.0, help="weight of the VQ-VAE's squared error at pixels that differ from the median frame (robot, objects): above 1 it keeps small objects such as PickCube's cube, which plain MSE decodes away; 1: plain MSE (default: %(default)s)")
     p.add_argument("--image-steps", type=int, default=3000, help="image VQ-VAE training steps (default: %(default)s)")
     p.add_argument("--proprio-bins", type=int, default=64, help="bins per state dimension for proprioception tokens; 0: none (default: %(default)s)")
     p.add_argument("--fsq-levels", type=int, nargs="+", default=[2] * 8, help="FSQ levels per latent channel; the vocabulary is their product, 2^8 = 256 by default like the VQ codebook (default: %(default)s)")

@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from vector_quantize_pytorch.vector_quantize_pytorch import Codebook
 
 from mmada_rl.tokenizers.action import ActionTokenizer, TokenizerLoss
-from mmada_rl.tokenizers.image import VQImageTokenizer
+from mmada_rl.tokenizers.image import VQImageTokenizer, median_background
 
 __all__ = ["FitResult", "fit_action_tokenizer", "fit_image_tokenizer", "count_dead_code_restarts"]
 
@@ -200,12 +200,16 @@ def fit_image_tokenizer(
 ) -> FitResult:
     """Trains the image VQ-VAE on uint8 ``images [N, C, H, W]``.
 
-    A no-grad pass on up to 128 images initialises the codebook by k-means;
-    then ``steps`` AdamW steps. The tokenizer is left in eval mode.
+    With ``config.foreground_weight > 1`` the background (per-pixel median of
+    ``images``) is fitted first. A no-grad pass on up to 128 images initialises
+    the codebook by k-means; then ``steps`` AdamW steps. The tokenizer is left in
+    eval mode.
     """
     _check_loop_args(steps, batch_size, lr)
     images = tokenizer.check_images(images)
     images = images.reshape(-1, *images.shape[-3:])  # (N, C, H, W)
+    if tokenizer.config.weights_foreground:
+        tokenizer.background.copy_(median_background(images))
     return _fit_loop(
         tokenizer, images, tokenizer.to_float,
         steps=steps, batch_size=batch_size, init_size=128, lr=lr, seed=seed,

@@ -4,7 +4,17 @@ Encoder: ``log2(image_size / grid_size)`` strided 4x4 convolutions (64x64 ->
 8x8 by default) and a residual block; an EMA codebook (vector-quantize-pytorch's
 ``VectorQuantize`` with k-means initialisation and dead-code restarts) turns each
 grid cell into one token; the decoder mirrors the encoder with transposed
-convolutions. Sized for CPUs: the default (64 hidden channels at the grid,
+convolutions.
+
+Small objects vanish under a plain pixel MSE: PickCube-v1's cube covers about
+4 of the 4096 pixels of a 64x64 frame, and a VQ-VAE fitted with MSE decodes
+frames without it, so image tokens would hide the very object a policy must
+reach. ``foreground_weight > 1`` weights the error at *foreground* pixels, those
+that differ from the background (the per-pixel median of the training frames,
+fixed by a camera that does not move) by more than ``foreground_threshold``
+in any channel: robot, objects, goal markers (see
+:func:`mmada_rl.tokenizers.report.image_reconstruction_report` for the
+foreground PSNR). Sized for CPUs: the default (64 hidden channels at the grid,
 halved per finer level; 512 codes; 0.2 M parameters) trains at batch 32 in
 about 0.06 s per step with two threads on an idle 2-core machine, 0.1 s with
 one, so 2000 steps take 2-4 minutes.
@@ -16,7 +26,6 @@ from dataclasses import dataclass
 from typing import NamedTuple, Sequence
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
@@ -27,7 +36,7 @@ from mmada_rl.keys import IMAGE_KEY, IMAGE_TOKENS_KEY
 from mmada_rl.tokenizers.action import TokenizerLoss, check_positive
 from mmada_rl.tokenizers.io import TokenizerIOMixin
 
-__all__ = ["VQImageTokenizerConfig", "VQImageTokenizer", "ImageReconstruction"]
+__all__ = ["VQImageTokenizerConfig", "VQImageTokenizer", "ImageReconstruction", "foreground_mask", "median_background"]
 
 
 @dataclass
@@ -46,6 +55,9 @@ class VQImageTokenizerConfig:
         dead_code_threshold: restart codes whose EMA usage (assignments per batch)
             falls below this; 0 disables.
         commitment_weight: weight of the commitment loss.
+        foreground_weight: weight of the squared error at foreground pixels (1: plain MSE).
+        foreground_threshold: a pixel is foreground when one of its channels differs
+            from the background by more than this, in 0-255 units.
     """
 
     image_size: int = 64
@@ -58,6 +70,8 @@ class VQImageTokenizerConfig:
     kmeans_init: bool = True
     dead_code_threshold: float = 1.0
     commitment_weight: float = 0.25
+    foreground_weight: float = 1.0
+    foreground_threshold: float = 32.0
 
     def __post_init__(self) -> None:
         for name in ("image_size", "grid_size", "codebook_size", "channels", "hidden_channels", "embed_dim"):
@@ -73,6 +87,14 @@ class VQImageTokenizerConfig:
             raise ValueError(f"ema_decay must be in (0, 1), got {self.ema_decay}.")
         check_positive("dead_code_threshold", self.dead_code_threshold, allow_zero=True)
         check_positive("commitment_weight", self.commitment_weight, allow_zero=True)
+        if not self.foreground_weight >= 1.0:
+            raise ValueError(f"foreground_weight must be >= 1 (1: plain MSE), got {self.foreground_weight}.")
+        if not 0.0 < self.foreground_threshold < 255.0:
+            raise ValueError(f"foreground_threshold must be in (0, 255), got {self.foreground_threshold}.")
+
+    @property
+    def weights_foreground(self) -> bool:
+        return self.foreground_weight != 1.0
 
     @property
     def num_downsamples(self) -> int:
@@ -88,6 +110,18 @@ class ImageReconstruction(NamedTuple):
 
     tokens: torch.Tensor  # long (..., g, g)
     images: torch.Tensor  # uint8 (..., C, H, W)
+
+
+def median_background(images: torch.Tensor, *, max_images: int = 2048) -> torch.Tensor:
+    """Per-pixel median of uint8 ``images [N, C, H, W]`` (an evenly spaced subset of at most ``max_images``), float ``[C, H, W]``."""
+    step = max(1, images.shape[0] // max_images)
+    return images[::step][:max_images].float().median(dim=0).values
+
+
+def foreground_mask(images: torch.Tensor, background: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Bool ``[N, 1, H, W]``: pixels of ``images`` (float, 0-255 units) differing from ``background`` by more than
+    ``threshold`` in any channel."""
+    return (images - background).abs().amax(dim=-3, keepdim=True) > threshold
 
 
 class _ResBlock(nn.Module):
@@ -172,6 +206,8 @@ class VQImageTokenizer(TokenizerIOMixin, TensorDictModuleBase):
             accept_image_fmap=True,
         )
         self.decoder = _decoder(config)
+        if config.weights_foreground:  # float [C, H, W] in 0-255 units, fitted by fit_image_tokenizer
+            self.register_buffer("background", torch.zeros(config.channels, config.image_size, config.image_size))
 
     @property
     def vocab_size(self) -> int:
@@ -259,10 +295,15 @@ class VQImageTokenizer(TokenizerIOMixin, TensorDictModuleBase):
         return ImageReconstruction(tokens=tokens, images=self.decode(tokens))
 
     def loss(self, x: torch.Tensor) -> TokenizerLoss:
-        """Pixel MSE (images in [-1, 1], ``(B, C, H, W)``) + commitment; in train mode
-        this also runs the EMA codebook update and the dead-code restarts."""
+        """Pixel MSE (images in [-1, 1], ``(B, C, H, W)``), foreground pixels weighted by
+        ``foreground_weight``, + commitment; in train mode this also runs the EMA codebook
+        update and the dead-code restarts."""
         z_q, _, commit = self.quantizer(self.encoder(x))  # (B, D, g, g)
-        recon = F.mse_loss(self.decoder(z_q), x)
+        error = (self.decoder(z_q) - x).pow(2)  # (B, C, H, W)
+        if self.config.weights_foreground:
+            mask = foreground_mask((x + 1.0) * 127.5, self.background, self.config.foreground_threshold)  # (B, 1, H, W)
+            error = error * (1.0 + (self.config.foreground_weight - 1.0) * mask)
+        recon = error.mean()
         return TokenizerLoss(total=recon + commit, reconstruction=recon, commitment=commit)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
