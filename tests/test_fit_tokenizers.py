@@ -15,7 +15,8 @@ from mmada_rl.tokenizers.replay import replay_demonstrations, round_trip
 def test_fit_tokenizers_command_writes_tokenizers_and_report(pick_demos, run_cli, tmp_path):
     out = tmp_path / "tok"
     proc = run_cli("fit-tokenizers", "--data", pick_demos, "--out", out, "--action-steps", "30", "--image-steps", "5",
-                   "--codebook-size", "32", "--tokens-per-action", "2", "--replay-episodes", "1")
+                   "--codebook-size", "32", "--tokens-per-action", "2", "--replay-episodes", "1",
+                   "--image-foreground-weight", "10")
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads((out / "report.json").read_text())
     assert set(report["actions"]) == {"vq (ours)", "256 bins", "residual FSQ"}
@@ -24,12 +25,15 @@ def test_fit_tokenizers_command_writes_tokenizers_and_report(pick_demos, run_cli
     assert report["actions"]["256 bins"]["summary"]["tokens_per_action"] == 7
     assert report["actions"]["residual FSQ"]["summary"]["tokens_per_action"] == 2
     assert report["replay"]["raw actions"]["success_rate"] == 1.0  # the recorded actions solve the task again
-    assert 0.0 <= report["image"]["summary"]["psnr_db"] <= 100.0
+    image = report["image"]["summary"]
+    assert 0.0 <= image["psnr_db"] <= 100.0 and 0.0 <= image["psnr_foreground_db"] <= 100.0
+    assert 0.0 < image["foreground_fraction"] < 0.5  # the robot and the cube in front of a fixed camera
     for name in ("report.md", "reconstructions.png", "loss_curves.png"):
         assert (out / name).stat().st_size > 0
     assert "replay success" in (out / "report.md").read_text()
     loaded = FittedTokenizers.load(out)
     assert loaded.action.tokens_per_action == 2 and loaded.proprio is not None
+    assert loaded.image.config.foreground_weight == 10.0 and loaded.image.background.float().std() > 0  # a fitted median frame
 
 
 def test_replay_of_a_broken_tokenizer_fails_where_raw_actions_succeed(pick_demos):
