@@ -59,6 +59,9 @@ def summarize(run: Path) -> dict:
         "chunk_size": int(config["model"]["chunk_size"]),
         "execute_steps": int(config["eval"]["execute_steps"]),
         "skip_idle_start": bool(config.get("data", {}).get("skip_idle_start", False)),
+        # from the run's own image tokenizer (it may come from tokenizers.dir, not this run's config)
+        "image_foreground_weight": float(json.loads((ckpts[-1] / "model" / "tokenizers" / "image" / "config.json").read_text())
+                                         ["config"].get("foreground_weight", 1.0)),
         "steps": int(ckpts[-1].name.split("_")[-1]),
         "planned_steps": config["optim"]["total_steps"],
         # a single-task run logs eval/...; a multi-task run also logs eval/<task>/... (eval/... is their mean)
@@ -88,12 +91,13 @@ def main(argv: list[str] | None = None) -> int:
         last_acc = sum(v for _, v in acc[-10:]) / max(1, len(acc[-10:]))
         common = [r["action_tokenizer"], "yes" if r["predict_goal"] else "no", f"{r['chunk_size']} / {r['execute_steps']}",
                   r["denoiser"], f"{r['steps']} / {r['planned_steps']}", f"{last_acc:.2f}"]
+        options = ((" (no window in the leading hold)" if r["skip_idle_start"] else "")
+                   + (f" (image foreground weight {r['image_foreground_weight']:g})" if r["image_foreground_weight"] != 1 else ""))
         if r["per_task"]:
-            rows += [[f"{task} (multi-task, {len(r['tasks'])} tasks)", *common, format_evaluations(evals)]
+            rows += [[f"{task} (multi-task, {len(r['tasks'])} tasks){options}", *common, format_evaluations(evals)]
                      for task, evals in r["per_task"].items()]
         else:
-            name = r["task"] + (" (no window in the leading hold)" if r["skip_idle_start"] else "")
-            rows.append([name, *common, format_evaluations(r["evaluations"])])
+            rows.append([r["task"] + options, *common, format_evaluations(r["evaluations"])])
     header = ["task", "action tokens", "goal prediction", "K / executed", "denoiser", "steps (trained / planned)",
               "action-token accuracy (last 10 logs)", "success_once [95% CI]"]
     table = markdown_table(header, rows)
@@ -107,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in runs:
         name = r["task"] if len(r["tasks"]) == 1 else "multi-task"
         ablated = (("" if r["predict_goal"] else ", no goal") + ("" if r["chunk_size"] == 5 else f", K={r['chunk_size']}")
-                   + (", skip idle start" if r["skip_idle_start"] else ""))
+                   + (", skip idle start" if r["skip_idle_start"] else "")
+                   + (f", image fg x{r['image_foreground_weight']:g}" if r["image_foreground_weight"] != 1 else ""))
         label = f"{name} {r['action_tokenizer']}{ablated}"
         if r["action_accuracy"]:
             steps, values = zip(*r["action_accuracy"])

@@ -88,13 +88,14 @@ def test_tokenizers_fitted_on_every_task(buffers):
 @pytest.fixture(scope="module")
 def multitask_run(pick_demos, push_demos, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """Three toy steps of one model on PickCube-v1 and PushCube-v1 (no window in the planners' leading
-    hold), a one-episode evaluation of each task."""
+    hold; a foreground-weighted image tokenizer), a one-episode evaluation of each task."""
     run_dir = tmp_path_factory.mktemp("multitask") / "multi"
     proc = subprocess.run(
         [sys.executable, str(RECIPE), f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]",
          f"data.dir='{pick_demos.parent}/{{task}}'", "data.collect_episodes=0", "optim.total_steps=3",
          "checkpoint.interval=3", "eval.episodes=1", "eval.max_episode_steps=5", "num_threads=1",
-         "data.skip_idle_start=true"],  # the option end to end (its effect: tests/test_data.py)
+         "data.skip_idle_start=true",  # the option end to end (its effect: tests/test_data.py)
+         "tokenizers.image.foreground_weight=5"],  # likewise (its effect: tests/test_tokenizers.py)
         cwd=REPO, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -133,6 +134,8 @@ def test_pretraining_report_gives_one_row_per_task(multitask_run, toy_pretrain_r
     run, single = json.loads((tmp_path / "pretraining.json").read_text())["runs"]
     assert run["tasks"] == ["PickCube-v1", "PushCube-v1"]
     assert run["skip_idle_start"] and not single["skip_idle_start"]
+    assert run["image_foreground_weight"] == 5.0 and single["image_foreground_weight"] == 1.0
+    assert "| PushCube-v1 (multi-task, 2 tasks) (no window in the leading hold) (image foreground weight 5) |" in report
     assert all(evals[0]["step"] == 3 and evals[0]["episodes"] == 1 for evals in run["per_task"].values())
     assert (tmp_path / "pretraining.png").exists()
 
