@@ -53,6 +53,8 @@ class WeightEMA:
         self.max_decay = float(max_decay)
         self.updates = 0
         self.shadow = {name: value.detach().clone() for name, value in module.state_dict().items()}
+        self._floats = [name for name, value in self.shadow.items() if value.is_floating_point()]  # averaged
+        self._others = [name for name, value in self.shadow.items() if not value.is_floating_point()]  # copied (counters)
 
     def decay(self, updates: int | None = None) -> float:
         """The decay applied at update number ``updates`` (default: the last one made)."""
@@ -65,11 +67,9 @@ class WeightEMA:
         self.updates += 1
         weight = 1.0 - self.decay()
         current = self.module.state_dict()
-        floats = [name for name, value in self.shadow.items() if value.is_floating_point()]
-        torch._foreach_lerp_([self.shadow[n] for n in floats], [current[n].detach() for n in floats], weight)
-        for name, value in self.shadow.items():
-            if not value.is_floating_point():
-                value.copy_(current[name])
+        torch._foreach_lerp_([self.shadow[n] for n in self._floats], [current[n].detach() for n in self._floats], weight)
+        for name in self._others:
+            self.shadow[name].copy_(current[name])
 
     @contextmanager
     def applied(self) -> Iterator[torch.nn.Module]:
