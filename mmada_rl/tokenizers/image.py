@@ -36,7 +36,11 @@ from mmada_rl.keys import IMAGE_KEY, IMAGE_TOKENS_KEY
 from mmada_rl.tokenizers.action import TokenizerLoss, check_positive
 from mmada_rl.tokenizers.io import TokenizerIOMixin
 
-__all__ = ["VQImageTokenizerConfig", "VQImageTokenizer", "ImageReconstruction", "foreground_mask", "median_background"]
+__all__ = ["FOREGROUND_THRESHOLD", "VQImageTokenizerConfig", "VQImageTokenizer", "ImageReconstruction", "foreground_mask",
+           "median_background"]
+
+#: A pixel differing from the background by more than this (0-255 units) in a channel is foreground.
+FOREGROUND_THRESHOLD = 32.0
 
 
 @dataclass
@@ -71,7 +75,7 @@ class VQImageTokenizerConfig:
     dead_code_threshold: float = 1.0
     commitment_weight: float = 0.25
     foreground_weight: float = 1.0
-    foreground_threshold: float = 32.0
+    foreground_threshold: float = FOREGROUND_THRESHOLD
 
     def __post_init__(self) -> None:
         for name in ("image_size", "grid_size", "codebook_size", "channels", "hidden_channels", "embed_dim"):

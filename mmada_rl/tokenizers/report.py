@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 
 from mmada_rl.tokenizers.action import ActionTokenizer
 from mmada_rl.tokenizers.fit import FitResult
-from mmada_rl.tokenizers.image import VQImageTokenizer, foreground_mask, median_background
+from mmada_rl.tokenizers.image import FOREGROUND_THRESHOLD, VQImageTokenizer, foreground_mask, median_background
 from mmada_rl.tokenizers.normalize import ActionOutOfRangeWarning
 
 __all__ = [
@@ -139,7 +139,7 @@ def psnr(images: torch.Tensor, reconstructions: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def image_reconstruction_report(tokenizer: VQImageTokenizer, images: torch.Tensor, *, batch_size: int = 256,
-                                foreground_threshold: float = 32.0) -> dict:
+                                foreground_threshold: float = FOREGROUND_THRESHOLD) -> dict:
     """PSNR and code usage of ``tokenizer`` on uint8 ``images [N, C, H, W]``.
 
     ``psnr_foreground_db`` is the PSNR over foreground pixels only: those that differ
