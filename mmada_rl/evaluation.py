@@ -134,10 +134,11 @@ class EvalResult:
     per_episode: list[EpisodeResult] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
     sample_temperature: float = 0.0  # 0: greedy decoding; > 0: tokens sampled at this temperature
+    checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
 
     def to_dict(self) -> dict:
         """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``."""
-        skip = {"task", "seeds", "per_episode", "files"}
+        skip = {"task", "seeds", "per_episode", "files", "checkpoint"}
         return {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
 
     def table(self) -> str:
@@ -326,6 +327,7 @@ def evaluate(
         decode_ms_mean=float(latencies.mean()), decode_ms_p95=float(np.percentile(latencies, 95)),
         env_steps_per_second=sum(r.steps for r in results) / seconds,
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
+        checkpoint=str(model) if isinstance(model, (str, Path)) else None,
     )  # fmt: skip
     if out_dir is not None:
         metrics.files = _write_outputs(Path(out_dir), metrics, frames if video else None,
@@ -336,7 +338,7 @@ def evaluate(
 # -- outputs ----------------------------------------------------------------------
 def _write_outputs(out: Path, metrics: EvalResult, videos, goal) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
-    payload = {**metrics.to_dict(), "task": metrics.task, "seeds": metrics.seeds,
+    payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint, "seeds": metrics.seeds,
                "per_episode": [r._asdict() for r in metrics.per_episode]}
     files = [out / "eval.json", out / "eval.md"]
     files[0].write_text(json.dumps(payload, indent=2))

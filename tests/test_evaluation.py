@@ -1,7 +1,9 @@
 """Evaluation protocol, its outputs and the ``mmada-rl eval`` command."""
 from __future__ import annotations
 
+import importlib.util
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -73,6 +75,7 @@ def test_evaluate_two_short_episodes(model_dir, tmp_path):
     assert result.num_denoise_steps == 2
     saved = json.loads((tmp_path / "eval.json").read_text())
     assert saved["eval/success_once"] == result.success_once and len(saved["per_episode"]) == 2
+    assert saved["checkpoint"] == str(model_dir.parent)  # provenance
     assert "success_once" in (tmp_path / "eval.md").read_text()
     assert (tmp_path / "goal_grid.png").stat().st_size > 0
     assert len(list((tmp_path / "videos").iterdir())) == 2
@@ -108,3 +111,32 @@ def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
     assert main(["eval", "--checkpoint", str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("mmada-rl eval: error: no MMaDA policy at") and "\n" not in err
+
+
+def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run, tmp_path):
+    spec = importlib.util.spec_from_file_location("seeds", Path(__file__).parents[1] / "benchmarks" / "seeds.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    # the toy run logged a 1-episode evaluation at its last step; evaluate it again into an eval.json
+    evaluate(toy_pretrain_run, "PickCube-v1", 1, max_episode_steps=10, out_dir=tmp_path / "e1", progress=False)
+    sources = [str(toy_pretrain_run), str(tmp_path / "e1" / "eval.json")]
+    assert bench.main(["--group", "toy", *sources, "--name", "seeds_toy", "--out", str(tmp_path / "out")]) == 0
+    group, = json.loads((tmp_path / "out" / "seeds_toy.json").read_text())["groups"]
+    assert group["num_seeds"] == 2 and group["episodes_per_seed"] == 1
+    assert [r["seed"] for r in group["seeds"]] == [0, 0]  # read from the run's checkpoint config, both times
+    assert group["seeds"][0]["step"] == 6 and group["seeds"][1]["step"] is None
+    successes = sum(r["successes"] for r in group["seeds"])
+    assert group["pooled"]["successes"] == successes and group["pooled"]["trials"] == 2
+    assert group["mean"] == pytest.approx(successes / 2)
+    low, high = group["pooled"]["ci"]
+    assert 0 <= low <= successes / 2 <= high <= 1
+    assert "| toy | 2 | 1 |" in (tmp_path / "out" / "seeds_toy.md").read_text()
+    assert (tmp_path / "out" / "seeds_toy.png").stat().st_size > 0
+    # evaluations on different numbers of episodes are not pooled
+    evaluate(toy_pretrain_run, "PickCube-v1", 2, max_episode_steps=4, out_dir=tmp_path / "e2", progress=False)
+    with pytest.raises(ValueError, match="different numbers of episodes"):
+        bench.main(["--group", "toy", str(toy_pretrain_run), str(tmp_path / "e2" / "eval.json"), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        bench.main(["--group", "no sources", "--out", str(tmp_path)])
+    with pytest.raises(FileNotFoundError, match="neither"):
+        bench.main(["--group", "toy", str(tmp_path / "missing"), "--out", str(tmp_path)])

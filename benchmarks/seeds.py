@@ -1,0 +1,130 @@
+"""Training-seed spread: the same configuration trained with different seeds, evaluated on the same episodes.
+
+    # three pretraining seeds of the PushCube-v1 policy, each evaluated on the same 50 evaluation seeds
+    python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_bins_s1 seed=1 \\
+        eval.interval=2000 eval.episodes=50
+    mmada-rl eval --checkpoint runs/push_bins_s0 --task PushCube-v1 --episodes 50 --out runs/evals/push_bins_s0_50ep
+    python benchmarks/seeds.py --group "PushCube-v1, small denoiser, 2000 steps" \\
+        runs/evals/push_bins_s0_50ep/eval.json runs/push_bins_s1 runs/push_bins_s2 --name seeds_PushCube-v1
+
+A source is either an ``eval.json`` written by ``mmada-rl eval`` or a training run directory
+(``recipes/pretrain``, ``recipes/baselines/imitation.py``: its last logged evaluation).
+For every group: each seed's ``success_once`` with its 95% Wilson interval, the mean and
+standard deviation over seeds, and the episodes of all seeds pooled (successes / trials,
+with their Wilson interval). Sources of one group must have been evaluated on the same
+number of episodes (the same fixed evaluation seeds), or the comparison is not like for like.
+Writes ``benchmarks/results/NAME.{json,md,png}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, markdown_table, write_results  # noqa: E402
+from pretraining import read_evaluations  # noqa: E402
+
+from mmada_rl.evaluation import wilson_interval  # noqa: E402
+
+
+def _run_seed(run: Path) -> int | None:
+    """The ``seed`` of a run's newest checkpoint config (``None`` when it has none)."""
+    configs = sorted((run / "checkpoints").glob("step_*/config.json"))
+    return json.loads(configs[-1].read_text()).get("seed") if configs else None
+
+
+def read_source(source: Path) -> dict:
+    """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end}``."""
+    if source.is_file():
+        data = json.loads(source.read_text())
+        if "eval/success_once" not in data:
+            raise ValueError(f"{source} is not an evaluation written by `mmada-rl eval` (no eval/success_once).")
+        episodes = int(data["eval/episodes"])
+        checkpoint = data.get("checkpoint")
+        seed = _run_seed(Path(checkpoint)) if checkpoint and Path(checkpoint).is_dir() else None
+        row = {"seed": seed, "step": None, "episodes": episodes, "success_once": float(data["eval/success_once"]),
+               "success_at_end": float(data["eval/success_at_end"])}
+    elif source.is_dir():
+        evaluations = read_evaluations(source)
+        if not evaluations:
+            raise ValueError(f"{source} logged no evaluation (logs/scalars/eval/success_once.csv is missing or empty).")
+        last = evaluations[-1]
+        row = {"seed": _run_seed(source), "step": last["step"], "episodes": int(last.get("episodes", 0)),
+               "success_once": last["success_once"], "success_at_end": last.get("success_at_end")}
+    else:
+        raise FileNotFoundError(f"{source}: neither an eval.json nor a run directory.")
+    row["successes"] = round(row["success_once"] * row["episodes"])
+    return {"source": str(source), **row}
+
+
+def summarize_group(label: str, sources: list[Path]) -> dict:
+    rows = [read_source(s) for s in sources]
+    episodes = {r["episodes"] for r in rows}
+    if len(episodes) != 1:
+        counts = ", ".join(f"{r['source']}: {r['episodes']}" for r in rows)
+        raise ValueError(f"group {label!r}: sources were evaluated on different numbers of episodes "
+                         f"({counts}); evaluate them alike.")
+    rates = [r["success_once"] for r in rows]
+    successes, trials = sum(r["successes"] for r in rows), sum(r["episodes"] for r in rows)
+    pooled = wilson_interval(successes, trials)
+    for r in rows:
+        r["ci"] = list(wilson_interval(r["successes"], r["episodes"]))
+    return {
+        "label": label, "seeds": rows, "num_seeds": len(rows), "episodes_per_seed": episodes.pop(),
+        "mean": statistics.fmean(rates), "std": statistics.stdev(rates) if len(rates) > 1 else 0.0,
+        "pooled": {"successes": successes, "trials": trials, "rate": successes / trials, "ci": list(pooled)},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--group", nargs="+", action="append", required=True, metavar=("LABEL", "SOURCE"),
+                        help="a label, then one source per training seed (eval.json or run directory); repeatable")
+    parser.add_argument("--name", default="seeds", help="result file name under --out (default: seeds)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    for group in args.group:
+        if len(group) < 2:
+            parser.error(f"--group {group[0]!r} names no source: give a label, then one eval.json or run per seed.")
+    groups = [summarize_group(label, [Path(s) for s in sources]) for label, *sources in args.group]
+
+    rows = []
+    for g in groups:
+        per_seed = "; ".join(f"s{r['seed'] if r['seed'] is not None else '?'}: {r['successes']}/{r['episodes']}"
+                             for r in g["seeds"])
+        p = g["pooled"]
+        rows.append([g["label"], g["num_seeds"], g["episodes_per_seed"], per_seed, f"{g['mean']:.2f} ± {g['std']:.2f}",
+                     f"{p['successes']}/{p['trials']} = {p['rate']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"])
+    table = markdown_table(["configuration", "training seeds", "episodes per seed", "successes per seed",
+                            "success_once mean ± std over seeds", "pooled [95% CI]"], rows)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * len(groups) + 1.5), 3.6))
+    for i, g in enumerate(groups):
+        n = g["num_seeds"]
+        for j, r in enumerate(g["seeds"]):
+            x = i + (j - (n - 1) / 2) * 0.18
+            ax.errorbar(x, r["success_once"], yerr=[[r["success_once"] - r["ci"][0]], [r["ci"][1] - r["success_once"]]],
+                        fmt="o", color=f"C{i}", capsize=3)
+        ax.hlines(g["pooled"]["rate"], i - 0.35, i + 0.35, colors=f"C{i}", linestyles="--")
+    ax.set_xticks(range(len(groups)), [g["label"] for g in groups], fontsize=7)
+    ax.set_ylabel("success_once (per seed, 95% CI; dashed: pooled)")
+    ax.set_ylim(-0.02, 1.02)
+    fig.tight_layout()
+    args.out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out / f"{args.name}.png", dpi=120)
+    write_results(args.name, {"groups": groups}, f"# Training seeds\n\n{table}\n\n![seeds]({args.name}.png)\n",
+                  directory=args.out)
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
