@@ -53,6 +53,18 @@ def pick_demos(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def state_demos(tmp_path_factory) -> Path:
+    """Two PickCube-v1 planner demonstrations recorded with the privileged state (what SAC, IQL and the
+    state-observation imitation references read)."""
+    from mmada_rl.data.collect import collect
+    from mmada_rl.envs.maniskill import EnvConfig
+
+    out = tmp_path_factory.mktemp("state_demos") / "PickCube-v1"
+    assert collect(out, EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=2, progress=False).new_episodes == 2
+    return out
+
+
+@pytest.fixture(scope="session")
 def push_demos(pick_demos) -> Path:
     """One PushCube-v1 planner demonstration beside ``pick_demos`` (same parent: ``<parent>/{task}`` names both)."""
     from mmada_rl.data.collect import collect

@@ -287,6 +287,26 @@ def test_recipe_resumes_with_the_same_batches_and_noise(toy_runs, pick_demos, tm
         torch.testing.assert_close(weights[0][key], weights[1][key], rtol=1e-5, atol=1e-6)
 
 
+def test_recipe_trains_a_state_observation_reference_and_evaluates_it_on_the_state(state_demos, tmp_path):
+    run_dir = tmp_path / "bc_state"
+    proc = run_recipe("algo=bc", "env.obs_mode=state", *common(run_dir, state_demos), "eval.episodes=1",
+                      "eval.max_episode_steps=4")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    policy = load_policy(run_dir / "checkpoints" / "step_00000004" / "model")
+    assert policy.obs_mode == "state" and policy.image_size is None and policy.encoder.cnn is None
+    assert IMAGE_KEY not in policy.in_keys and STATE_KEY in policy.in_keys
+    state_dim = json.loads((state_demos / "metadata.json").read_text())["state_dim"]
+    assert policy.config.state_dim == state_dim != S  # the privileged vector, not the 29-d proprio
+    final = json.loads((run_dir / "final.json").read_text())
+    assert final["eval/episodes"] == 1 and final["eval/max_episode_steps"] == 4
+    # reads no image: a state tensordict alone is enough
+    td = TensorDict({STATE_KEY: torch.randn(3, state_dim)}, batch_size=[3])
+    assert policy(td)[ACTION_CHUNK_KEY].shape == (3, 5, A)  # the toy config's K
+    # an rgb policy on a state buffer is one clear error (the buffer's mode must match env.obs_mode)
+    proc = run_recipe("algo=bc", *common(tmp_path / "mismatch", state_demos), "eval.episodes=0")
+    assert proc.returncode != 0 and "obs_mode" in proc.stderr
+
+
 def test_recipe_rejects_an_unknown_algo(pick_demos, tmp_path):
     proc = run_recipe("algo=ppo", *common(tmp_path / "bad", pick_demos), "eval.episodes=0")
     assert proc.returncode != 0 and "algo='ppo' is not a baseline" in proc.stderr

@@ -106,17 +106,6 @@ def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def state_demos(tmp_path_factory) -> Path:
-    """Two PickCube-v1 planner demonstrations recorded with the privileged state (what SAC and IQL read)."""
-    from mmada_rl.data.collect import collect
-    from mmada_rl.envs.maniskill import EnvConfig
-
-    out = tmp_path_factory.mktemp("state_demos") / "PickCube-v1"
-    assert collect(out, EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=2, progress=False).new_episodes == 2
-    return out
-
-
-@pytest.fixture(scope="module")
 def toy_runs(state_demos, tmp_path_factory) -> dict[str, Path]:
     """Each algo once with online_toy.yaml: 64 env steps, evaluations at 32 and 64 (IQL also at 0), checkpoints kept."""
     runs = {}

@@ -13,7 +13,10 @@ and writes::
     ("vla_action", "chunk")    float [*B, K, A]   the predicted chunk, env units
     "action"                   float [*B, k, A]   its first ``execute_steps`` actions
 
-(no instruction: the baselines are single-task policies). Subclasses map encoder
+(no instruction: the baselines are single-task policies). With ``obs_mode="state"``
+the policy reads ManiSkill's privileged state vector at ``("observation", "state")``
+and no image: a reference that shows what the demonstrations teach with perfect
+perception, labelled as such wherever it is reported. Subclasses map encoder
 features ``[B, F]`` to a chunk in the normalised action space ``[B, K, A]``
 (:meth:`ChunkPolicy._predict_normalized`); this class encodes, denormalises,
 reshapes to the input's batch and times the call.
@@ -44,6 +47,8 @@ __all__ = ["POLICY_CONFIG", "POLICY_WEIGHTS", "ChunkPolicy", "ChunkPolicyConfig"
 #: The file that marks a directory as a saved baseline policy (kind + config).
 POLICY_CONFIG = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
+#: Observations a chunk policy can read (``ChunkPolicyConfig.obs_mode``).
+OBS_MODES = ("rgb", "state")
 
 
 @dataclass
@@ -54,8 +59,10 @@ class ChunkPolicyConfig:
         chunk_size: actions per chunk ``K``.
         action_dim: ``A`` (7 for ``pd_ee_delta_pose``).
         state_dim: ``S``, the proprioceptive state size of the task.
-        image_size: side of the square RGB observation.
+        image_size: side of the square RGB observation (unused with ``obs_mode="state"``).
         encoder: :class:`~mmada_rl.baselines.encoders.EncoderConfig` (or its dict).
+        obs_mode: ``"rgb"`` (image + proprio, default) or ``"state"`` (the privileged
+            state vector alone: ``state_dim`` is its size).
     """
 
     chunk_size: int = 5
@@ -63,10 +70,13 @@ class ChunkPolicyConfig:
     state_dim: int = 29
     image_size: int = 64
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    obs_mode: str = "rgb"
 
     def __post_init__(self) -> None:
         if isinstance(self.encoder, dict):
             self.encoder = EncoderConfig(**self.encoder)
+        if self.obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}.")
         for name in ("chunk_size", "action_dim", "state_dim", "image_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -107,9 +117,10 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
                          chunk_size=config.chunk_size, use_state=True,
                          return_vla_action_container=kwargs.pop("return_vla_action_container", False), **kwargs)
         self.config = config
+        self._update_keys()  # again, now that the observation mode is known
         # no stats: identity maps, to be overwritten by load_state_dict (a loaded policy)
         low, high, mean, std = stats if stats is not None else (None, None, None, None)
-        self.encoder = ObservationEncoder(config.encoder, image_size=config.image_size, state_dim=config.state_dim,
+        self.encoder = ObservationEncoder(config.encoder, image_size=self.image_size, state_dim=config.state_dim,
                                           state_mean=mean, state_std=std)
         self.normalizer = ChunkNormalizer(config.action_dim, low, high)
         self.execute_steps = check_execute_steps(execute_steps, self.chunk_size)
@@ -118,22 +129,33 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
         self.last_decode_seconds = float("nan")
 
     @property
-    def image_size(self) -> int:
-        return self.config.image_size
+    def image_size(self) -> int | None:
+        """Side of the images the policy reads (``None``: a state policy reads none)."""
+        return self.config.image_size if self.config.obs_mode == "rgb" else None
+
+    @property
+    def obs_mode(self) -> str:
+        """``"rgb"`` or ``"state"``: the observation mode of the env it runs in."""
+        return self.config.obs_mode
 
     # -- keys -------------------------------------------------------------------
     def _update_keys(self) -> None:
         super()._update_keys()
         keys = self._tensor_keys
-        self.in_keys = [key for key in self.in_keys if key != keys.instruction]  # single-task: no language
+        state_only = getattr(self, "config", None) is not None and self.config.obs_mode == "state"
+        drop = {keys.instruction} | ({keys.image} if state_only else set())
+        self.in_keys = [key for key in self.in_keys if key not in drop]  # single-task: no language
         self.out_keys = [*self.out_keys, keys.action]
 
     # -- inference --------------------------------------------------------------
     def features(self, tensordict: TensorDictBase) -> torch.Tensor:
         """Encoder features ``[B, F]`` of the observations of ``tensordict`` (batch ``[*B]`` flattened)."""
-        image, state = self._get_image(tensordict), self._get_state(tensordict)
-        device = self.normalizer.center.device
-        return self.encoder(image.reshape(-1, *image.shape[-3:]).to(device), state.reshape(-1, state.shape[-1]).to(device))
+        state, device = self._get_state(tensordict), self.normalizer.center.device
+        image = None
+        if self.config.obs_mode == "rgb":
+            image = self._get_image(tensordict)
+            image = image.reshape(-1, *image.shape[-3:]).to(device)
+        return self.encoder(image, state.reshape(-1, state.shape[-1]).to(device))
 
     def _predict_normalized(self, features: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         """Features ``[B, F]`` -> normalised chunk ``[B, K, A]``; what each baseline implements."""
@@ -147,7 +169,7 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
         normalized = self._predict_normalized(self.features(tensordict), generator or self.generator)  # (B, K, A)
         chunk = self.normalizer.denormalize(normalized)
         self.last_decode_seconds = time.perf_counter() - start
-        home = tensordict.device or self._get_image(tensordict).device  # where the env reads the action
+        home = tensordict.device or self._get_state(tensordict).device  # where the env reads the action
         chunk = chunk.reshape(*batch, self.chunk_size, self.action_dim).to(home)  # (*B, K, A)
         out = TensorDict({}, batch_size=batch, device=tensordict.device)
         self._set_action(out, chunk=chunk)

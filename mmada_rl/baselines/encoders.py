@@ -76,7 +76,9 @@ class ObservationEncoder(nn.Module):
 
     Args:
         config: sizes.
-        image_size: side of the square input image (a multiple of ``2**len(channels)``).
+        image_size: side of the square input image (a multiple of ``2**len(channels)``);
+            ``None``: no image, the state MLP alone (``[B, state_features]``; a
+            policy on ManiSkill's privileged state vector, a reference).
         state_dim: ``S``.
         state_mean, state_std: state moments of the training data (default: identity).
 
@@ -86,14 +88,21 @@ class ObservationEncoder(nn.Module):
         torch.Size([2, 192])
     """
 
-    def __init__(self, config: EncoderConfig, *, image_size: int, state_dim: int,
+    def __init__(self, config: EncoderConfig, *, image_size: int | None, state_dim: int,
                  state_mean: torch.Tensor | None = None, state_std: torch.Tensor | None = None) -> None:
         super().__init__()
+        self.config, self.image_size = config, image_size
+        self.cnn = None if image_size is None else self._build_cnn(config, image_size)
+        self.standardize = StateStandardizer(state_dim, state_mean, state_std)
+        self.state_mlp = nn.Sequential(nn.Linear(state_dim, config.state_features), nn.Mish(),
+                                       nn.Linear(config.state_features, config.state_features), nn.Mish())
+
+    @staticmethod
+    def _build_cnn(config: EncoderConfig, image_size: int) -> nn.Sequential:
         stride = 2 ** len(config.channels)
         if image_size % stride:
             raise ValueError(f"image_size={image_size} is not a multiple of 2**len(channels)={stride}; "
                              f"use fewer encoder channels or another image size.")
-        self.config, self.image_size = config, image_size
         layers, width = [], 3
         for out in config.channels:
             layers += [nn.Conv2d(width, out, 3, stride=2, padding=1), nn.GroupNorm(math.gcd(out, config.norm_groups), out), nn.Mish()]
@@ -103,23 +112,24 @@ class ObservationEncoder(nn.Module):
             pool, pooled = SpatialSoftmax(width, config.num_keypoints, side, side), 2 * config.num_keypoints
         else:
             pool, pooled = nn.Flatten(), width * side * side
-        self.cnn = nn.Sequential(*layers, pool, nn.Linear(pooled, config.image_features),
-                                 nn.LayerNorm(config.image_features), nn.Mish())
-        self.standardize = StateStandardizer(state_dim, state_mean, state_std)
-        self.state_mlp = nn.Sequential(nn.Linear(state_dim, config.state_features), nn.Mish(),
-                                       nn.Linear(config.state_features, config.state_features), nn.Mish())
+        return nn.Sequential(*layers, pool, nn.Linear(pooled, config.image_features),
+                             nn.LayerNorm(config.image_features), nn.Mish())
 
     @property
     def out_features(self) -> int:
-        return self.config.out_features
+        return self.config.out_features if self.cnn is not None else self.config.state_features
 
-    def forward(self, image: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-        """``image`` uint8 ``(B, 3, H, W)``, ``state`` ``(B, S)`` -> ``(B, F)``."""
-        if image.shape[-2:] != (self.image_size, self.image_size):
-            raise ValueError(f"observation images are {tuple(image.shape[-2:])} but the encoder was built for "
+    def forward(self, image: torch.Tensor | None, state: torch.Tensor) -> torch.Tensor:
+        """``image`` uint8 ``(B, 3, H, W)`` (``None`` without a CNN), ``state`` ``(B, S)`` -> ``(B, F)``."""
+        features = self.state_mlp(self.standardize(state.float()))  # (B, state_features)
+        if self.cnn is None:
+            return features
+        if image is None or image.shape[-2:] != (self.image_size, self.image_size):
+            got = None if image is None else tuple(image.shape[-2:])
+            raise ValueError(f"observation images are {got} but the encoder was built for "
                              f"{self.image_size}x{self.image_size}; use env image_size={self.image_size}.")
         pixels = image.float() / 127.5 - 1.0  # (B, 3, H, W) in [-1, 1]
-        return torch.cat([self.cnn(pixels), self.state_mlp(self.standardize(state.float()))], -1)  # (B, F)
+        return torch.cat([self.cnn(pixels), features], -1)  # (B, F)
 
 
 class SpatialSoftmax(nn.Module):

@@ -35,7 +35,8 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
         "chunk_size": int(cfg.model.chunk_size),
         "action_dim": int(meta.action_dim),
         "state_dim": int(meta.state_dim),
-        "image_size": int(meta.image_size),
+        "image_size": int(meta.image_size or cfg.env.image_size),
+        "obs_mode": meta.obs_mode,
         "encoder": OmegaConf.to_container(cfg.model.encoder),
         **OmegaConf.to_container(cfg.model[cfg.algo]),
     }
@@ -45,7 +46,7 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
 def make_data(cfg: DictConfig, buffer: DemoBuffer):
     """Chunk-window sampler over the demonstrations (seeded), with random-shift augmentation of the images."""
     data = make_window_buffer(buffer, int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), seed=int(cfg.seed))
-    if int(cfg.replay_buffer.random_shift):
+    if int(cfg.replay_buffer.random_shift) and buffer.metadata.obs_mode == "rgb":
         data.append_transform(RandomShift(int(cfg.replay_buffer.random_shift)))
     return data
 
@@ -119,7 +120,7 @@ def evaluate(cfg: DictConfig, policy: ChunkPolicy) -> dict:
     """``eval/...`` metrics of the policy on ``cfg.eval.episodes`` fixed evaluation seeds."""
     from mmada_rl.evaluation import evaluate as run_eval
 
-    result = run_eval(policy, cfg.env.task, episodes=int(cfg.eval.episodes), image_size=int(cfg.env.image_size),
+    result = run_eval(policy, cfg.env.task, episodes=int(cfg.eval.episodes), image_size=policy.image_size,
                       control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
                       execute_steps=int(cfg.eval.execute_steps), num_denoise_steps=cfg.eval.num_denoise_steps,
                       progress=False)
