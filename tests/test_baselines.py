@@ -185,6 +185,23 @@ def test_encoder_pools_to_one_feature_vector(pool):
         assert keypoints.shape == (3, 8) and keypoints.abs().max() <= 1.0
 
 
+def test_dropped_state_dims_are_not_read():
+    config = EncoderConfig(channels=(8,), image_features=4, state_features=6, num_keypoints=2, drop_state_dims=[12, 9, 9])
+    assert config.drop_state_dims == (9, 12)
+    encoder = ObservationEncoder(config, image_size=None, state_dim=S)
+    assert encoder.state_mlp[0].in_features == S - 2 and encoder.out_features == 6
+    state = torch.randn(4, S)
+    changed = state.clone()
+    changed[:, [9, 12]] += 100.0
+    torch.testing.assert_close(encoder(None, changed), encoder(None, state))  # what it does not read cannot move it
+    changed[:, 10] += 1.0
+    assert not torch.allclose(encoder(None, changed), encoder(None, state))
+    with pytest.raises(ValueError, match=r"drop_state_dims=\[29\] must name some, not all"):
+        ObservationEncoder(EncoderConfig(drop_state_dims=[29]), image_size=None, state_dim=S)
+    with pytest.raises(ValueError, match="not all"):
+        ObservationEncoder(EncoderConfig(drop_state_dims=range(S)), image_size=None, state_dim=S)
+
+
 def test_random_shift_moves_images_by_at_most_pad_pixels():
     torch.manual_seed(0)
     image = torch.zeros(4, 3, 16, 16, dtype=torch.uint8)
@@ -290,10 +307,11 @@ def test_recipe_resumes_with_the_same_batches_and_noise(toy_runs, pick_demos, tm
 def test_recipe_trains_a_state_observation_reference_and_evaluates_it_on_the_state(state_demos, tmp_path):
     run_dir = tmp_path / "bc_state"
     proc = run_recipe("algo=bc", "env.obs_mode=state", *common(run_dir, state_demos), "eval.episodes=1",
-                      "eval.max_episode_steps=4")
+                      "eval.max_episode_steps=4", "model.encoder.drop_state_dims=[9,10,11,12,13,14,15,16,17]")
     assert proc.returncode == 0, proc.stderr[-3000:]
     policy = load_policy(run_dir / "checkpoints" / "step_00000004" / "model")
     assert policy.obs_mode == "state" and policy.image_size is None and policy.encoder.cnn is None
+    assert policy.config.encoder.drop_state_dims == tuple(range(9, 18))  # saved with the policy: joint velocities unread
     assert IMAGE_KEY not in policy.in_keys and STATE_KEY in policy.in_keys
     state_dim = json.loads((state_demos / "metadata.json").read_text())["state_dim"]
     assert policy.config.state_dim == state_dim != S  # the privileged vector, not the 29-d proprio

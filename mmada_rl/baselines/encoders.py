@@ -46,6 +46,10 @@ class EncoderConfig:
         pool: ``"spatial_softmax"`` (``num_keypoints`` expected x-y positions) or
             ``"flatten"`` (every cell of the last feature map) before the image embedding.
         num_keypoints: keypoints of the spatial softmax.
+        drop_state_dims: state dimensions the policy does not read (e.g. ``9..17``,
+            the Panda's joint velocities in ManiSkill's state: a policy that sees
+            them can learn to copy its own motion, "stand still when still", from
+            the planner's pauses instead of reacting to the scene).
     """
 
     channels: tuple[int, ...] = (32, 64, 128)
@@ -54,9 +58,11 @@ class EncoderConfig:
     norm_groups: int = 8
     pool: str = "spatial_softmax"
     num_keypoints: int = 32
+    drop_state_dims: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         self.channels = tuple(int(c) for c in self.channels)
+        self.drop_state_dims = tuple(sorted({int(d) for d in self.drop_state_dims}))
         if not self.channels or min(self.channels) < 1:
             raise ValueError(f"channels must be a non-empty list of positive widths, got {list(self.channels)!r}.")
         if self.pool not in POOLS:
@@ -94,7 +100,13 @@ class ObservationEncoder(nn.Module):
         self.config, self.image_size = config, image_size
         self.cnn = None if image_size is None else self._build_cnn(config, image_size)
         self.standardize = StateStandardizer(state_dim, state_mean, state_std)
-        self.state_mlp = nn.Sequential(nn.Linear(state_dim, config.state_features), nn.Mish(),
+        bad = [d for d in config.drop_state_dims if not 0 <= d < state_dim]
+        if bad or len(config.drop_state_dims) >= state_dim:
+            raise ValueError(f"drop_state_dims={list(config.drop_state_dims)} must name some, not all, of the "
+                             f"state's dimensions 0..{state_dim - 1}" + (f" ({bad} are not)." if bad else "."))
+        kept = [d for d in range(state_dim) if d not in config.drop_state_dims]
+        self.register_buffer("state_index", torch.tensor(kept), persistent=False)
+        self.state_mlp = nn.Sequential(nn.Linear(len(kept), config.state_features), nn.Mish(),
                                        nn.Linear(config.state_features, config.state_features), nn.Mish())
 
     @staticmethod
@@ -121,7 +133,7 @@ class ObservationEncoder(nn.Module):
 
     def forward(self, image: torch.Tensor | None, state: torch.Tensor) -> torch.Tensor:
         """``image`` uint8 ``(B, 3, H, W)`` (``None`` without a CNN), ``state`` ``(B, S)`` -> ``(B, F)``."""
-        features = self.state_mlp(self.standardize(state.float()))  # (B, state_features)
+        features = self.state_mlp(self.standardize(state.float())[..., self.state_index])  # (B, state_features)
         if self.cnn is None:
             return features
         if image is None or image.shape[-2:] != (self.image_size, self.image_size):
