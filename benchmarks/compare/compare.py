@@ -35,6 +35,8 @@ from common import RESULTS, markdown_table, write_results  # noqa: E402
 _RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
         "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
         "collector.temperature=0.5"]
+#: the privileged-state demonstrations (where the online baselines' recipe collects them)
+_STATE_DEMOS = ["env.obs_mode=state", "data.dir=data/state/${env.task}"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
 METHODS = {
     "mmada_rwr": ("MMaDA-VLA + reward-weighted diffusion (ours)", "rgb+proprio",
@@ -63,6 +65,12 @@ METHODS = {
     "bc": ("BC (demos only)", "rgb+proprio", ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc"], False),
     "diffusion_policy": ("Diffusion Policy (demos only)", "rgb+proprio",
                          ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy"], False),
+    # the same imitation baselines with perfect perception: what the demonstrations teach at best
+    "bc_state": ("BC (demos only)", "privileged state (reference)",
+                 ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc", *_STATE_DEMOS], False),
+    "diffusion_policy_state": ("Diffusion Policy (demos only)", "privileged state (reference)",
+                               ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy",
+                                *_STATE_DEMOS], False),
 }
 
 
