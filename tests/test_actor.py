@@ -101,6 +101,27 @@ def test_keys_and_shapes_batched(model, observations):
     assert nested[DECODING_PATH_KEY].batch_size == (2, 3)
 
 
+def test_dropped_proprio_dims_leave_the_sequence(model, observations, tmp_path):
+    tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
+    velocities = list(range(9, 18))
+    config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3}, proprio_drop_dims=velocities)
+    lean = MMaDAModel(config, tokenizers).eval()
+    assert lean.layout.config.proprio_tokens == model.layout.config.proprio_tokens - 9 == 20
+    obs = observations[:2].clone()
+    moved = obs.clone()
+    moved[STATE_KEY][:, 9:18] += 10.0  # what is not read cannot change the prompt
+    assert torch.equal(lean.prompt(moved), lean.prompt(obs)) and not torch.equal(model.prompt(moved), model.prompt(obs))
+    moved[STATE_KEY][:, 0] += 10.0
+    assert not torch.equal(lean.prompt(moved), lean.prompt(obs))
+    assert MMaDAActor(lean)(obs)[ACTION_CHUNK_KEY].shape == (2, CHUNK, 7)
+    reloaded = MMaDAModel.load(lean.save(tmp_path / "lean"))
+    assert reloaded.config.proprio_drop_dims == velocities and torch.equal(reloaded.prompt(obs), lean.prompt(obs))
+    with pytest.raises(ValueError, match=r"must name some, not all, of the state's dimensions 0..28"):
+        MMaDAModel(MMaDAConfig(denoiser="tiny", proprio_drop_dims=[29]), tokenizers)
+    with pytest.raises(ValueError, match="needs use_proprio=True"):
+        MMaDAConfig(use_proprio=False, proprio_drop_dims=[9])
+
+
 def test_greedy_is_deterministic_and_random_samples(model, observations):
     actor = MMaDAActor(model)
     batch = observations[:3]

@@ -88,14 +88,16 @@ def test_tokenizers_fitted_on_every_task(buffers):
 @pytest.fixture(scope="module")
 def multitask_run(pick_demos, push_demos, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """Three toy steps of one model on PickCube-v1 and PushCube-v1 (no window in the planners' leading
-    hold; a foreground-weighted image tokenizer), a one-episode evaluation of each task."""
+    hold; a foreground-weighted image tokenizer; no joint velocities in the sequence), a one-episode
+    evaluation of each task."""
     run_dir = tmp_path_factory.mktemp("multitask") / "multi"
     proc = subprocess.run(
         [sys.executable, str(RECIPE), f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]",
          f"data.dir='{pick_demos.parent}/{{task}}'", "data.collect_episodes=0", "optim.total_steps=3",
          "checkpoint.interval=3", "eval.episodes=1", "eval.max_episode_steps=5", "num_threads=1",
          "data.skip_idle_start=true",  # the option end to end (its effect: tests/test_data.py)
-         "tokenizers.image.foreground_weight=5"],  # likewise (its effect: tests/test_tokenizers.py)
+         "tokenizers.image.foreground_weight=5",  # likewise (its effect: tests/test_tokenizers.py)
+         "model.proprio_drop_dims=[9,10,11,12,13,14,15,16,17]"],  # likewise (tests/test_actor.py)
         cwd=REPO, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -112,6 +114,9 @@ def test_multitask_recipe_trains_and_evaluates_each_task(multitask_run):
     assert final["eval/success_once"] == pytest.approx(mean)
     config = json.loads((run_dir / "checkpoints" / "step_00000003" / "config.json").read_text())
     assert config["tasks"] == ["PickCube-v1", "PushCube-v1"]
+    model = json.loads((run_dir / "checkpoints" / "step_00000003" / "model" / "model.json").read_text())
+    assert model["config"]["proprio_drop_dims"] == list(range(9, 18))
+    assert model["layout"]["layout"]["proprio_tokens"] == 29 - 9  # PickCube's state, the larger of the two
 
 
 def test_multitask_without_a_task_placeholder_is_one_clear_error(pick_demos, tmp_path):

@@ -59,6 +59,11 @@ class MMaDAConfig:
         chunk_size: actions per chunk ``K``.
         predict_goal: generate the goal image ``o_{t+K}`` together with the chunk.
         use_proprio: put the proprioceptive state into the sequence as tokens.
+        proprio_drop_dims: state dimensions left out of the sequence (their tokens
+            are dropped; the proprio tokenizer still covers every dimension, so a
+            tokenizer directory serves runs with and without them). E.g.
+            ``[9, ..., 17]``: the Panda's joint velocities, which let a policy copy
+            its own motion from the demonstrations' pauses (the copycat problem).
         interleave: interleave goal and action tokens.
         denoiser: a preset name (``tiny``, ``small``, ``base``) or a full config dict.
         denoiser_overrides: fields overriding the preset (e.g. ``{"attention": "block_causal"}``).
@@ -68,6 +73,7 @@ class MMaDAConfig:
     chunk_size: int = 5
     predict_goal: bool = True
     use_proprio: bool = True
+    proprio_drop_dims: list[int] = field(default_factory=list)
     interleave: bool = False
     denoiser: str | dict = "small"
     denoiser_overrides: dict = field(default_factory=dict)
@@ -76,6 +82,9 @@ class MMaDAConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.chunk_size, int) or self.chunk_size < 1:
             raise ValueError(f"chunk_size must be a positive int, got {self.chunk_size!r}.")
+        self.proprio_drop_dims = sorted({int(d) for d in self.proprio_drop_dims})
+        if self.proprio_drop_dims and not self.use_proprio:
+            raise ValueError(f"proprio_drop_dims={self.proprio_drop_dims} needs use_proprio=True.")
         self.denoiser_config()  # validates
         self.sampler_config()
 
@@ -140,6 +149,7 @@ class MMaDAModel(nn.Module):
         self.proprio_tokenizer = tokenizers.proprio if config.use_proprio else None
         for tok in self.tokenizers():
             tok.requires_grad_(False).eval()
+        self.register_buffer("proprio_index", self._proprio_index(), persistent=False)
         grid = self.image_tokenizer.config.grid_size
         self.vocab = UnifiedVocabulary(
             VocabularyConfig(
@@ -156,7 +166,7 @@ class MMaDAModel(nn.Module):
                 goal_tokens=self.image_tokenizer.tokens_per_image if config.predict_goal else 0,
                 chunk_size=config.chunk_size,
                 tokens_per_action=self.action_tokenizer.tokens_per_action,
-                proprio_tokens=self.proprio_tokenizer.tokens_per_action if self.proprio_tokenizer else 0,
+                proprio_tokens=len(self.proprio_index) if self.proprio_tokenizer else 0,
                 interleave=config.interleave,
                 image_grid=(grid, grid),
             ),
@@ -164,6 +174,19 @@ class MMaDAModel(nn.Module):
         )
         self.denoiser = MaskedDiffusionDenoiser(config.denoiser_config(), self.layout)
         self.sampler = MaskedDiffusionSampler(config.sampler_config())
+
+    def _proprio_index(self) -> torch.Tensor:
+        """Which of the proprio tokenizer's tokens enter the sequence (all but ``proprio_drop_dims``)."""
+        tok = self.proprio_tokenizer
+        if tok is None:
+            return torch.zeros(0, dtype=torch.long)
+        drop, dims = self.config.proprio_drop_dims, tok.config.action_dim
+        if drop and tok.tokens_per_action != dims:
+            raise ValueError(f"proprio_drop_dims needs one proprio token per state dimension, but the proprio "
+                             f"tokenizer writes {tok.tokens_per_action} tokens for {dims} dimensions.")
+        if any(d >= dims for d in drop) or len(drop) >= dims:
+            raise ValueError(f"proprio_drop_dims={drop} must name some, not all, of the state's dimensions 0..{dims - 1}.")
+        return torch.tensor([d for d in range(tok.tokens_per_action) if d not in drop], dtype=torch.long)
 
     def tokenizers(self) -> list[nn.Module]:
         return [t for t in (self.text_tokenizer, self.image_tokenizer, self.action_tokenizer, self.proprio_tokenizer) if t is not None]
@@ -201,7 +224,7 @@ class MMaDAModel(nn.Module):
                 # of a rollout; the normaliser still counts them (proprio_tokenizer.normalizer.num_out_of_range)
                 warnings.simplefilter("ignore", ActionOutOfRangeWarning)
                 proprio = self.proprio_tokenizer.encode(state)
-            out["proprio_ids"] = proprio.reshape(-1, self.layout.config.proprio_tokens)
+            out["proprio_ids"] = proprio.reshape(-1, proprio.shape[-1])[:, self.proprio_index.to(proprio.device)]
         if batch and out["text_ids"].shape[0] != batch.numel():
             raise ValueError(f"{out['text_ids'].shape[0]} instructions for a batch of {tuple(batch)}.")
         return out
