@@ -30,10 +30,14 @@ from pretraining import read_evaluations  # noqa: E402
 from mmada_rl.evaluation import wilson_interval  # noqa: E402
 
 
-def _run_seed(run: Path) -> int | None:
-    """The ``seed`` of a run's newest checkpoint config (``None`` when it has none)."""
-    configs = sorted((run / "checkpoints").glob("step_*/config.json"))
-    return json.loads(configs[-1].read_text()).get("seed") if configs else None
+def _run_seed(path: Path) -> int | None:
+    """The training ``seed`` of a run directory (its newest checkpoint's config), a checkpoint, or a
+    checkpoint's ``model/`` directory (``None`` when none of them says)."""
+    for candidate in (path, path.parent):
+        configs = sorted((candidate / "checkpoints").glob("step_*/config.json")) or [candidate / "config.json"]
+        if configs[-1].is_file():
+            return json.loads(configs[-1].read_text()).get("seed")
+    return None
 
 
 def read_source(source: Path) -> dict:
@@ -106,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * len(groups) + 1.5), 3.6))
+    fig, ax = plt.subplots(figsize=(min(12.0, max(4.0, 1.6 * len(groups) + 1.5)), 4.2))
     for i, g in enumerate(groups):
         n = g["num_seeds"]
         for j, r in enumerate(g["seeds"]):
@@ -114,8 +118,8 @@ def main(argv: list[str] | None = None) -> int:
             ax.errorbar(x, r["success_once"], yerr=[[r["success_once"] - r["ci"][0]], [r["ci"][1] - r["success_once"]]],
                         fmt="o", color=f"C{i}", capsize=3)
         ax.hlines(g["pooled"]["rate"], i - 0.35, i + 0.35, colors=f"C{i}", linestyles="--")
-    ax.set_xticks(range(len(groups)), [g["label"] for g in groups], fontsize=7)
-    ax.set_ylabel("success_once (per seed, 95% CI; dashed: pooled)")
+    ax.set_xticks(range(len(groups)), [g["label"] for g in groups], fontsize=7, rotation=25, ha="right")
+    ax.set_ylabel("success_once\n(per seed, 95% CI; dashed: pooled)")
     ax.set_ylim(-0.02, 1.02)
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
