@@ -4,7 +4,7 @@
     python recipes/pretrain/pretrain.py --config-name maniskill env.task=PushCube-v1 run_dir=runs/push_bins_s1 seed=1 \\
         eval.interval=2000 eval.episodes=50
     mmada-rl eval --checkpoint runs/push_bins_s0 --task PushCube-v1 --episodes 50 --out runs/evals/push_bins_s0_50ep
-    python benchmarks/seeds.py --group "PushCube-v1, small denoiser, 2000 steps" \\
+    python benchmarks/seeds.py --group "PushCube-v1, small denoiser, 256 bins, 2000 steps" \\
         runs/evals/push_bins_s0_50ep/eval.json runs/push_bins_s1 runs/push_bins_s2 --name seeds_PushCube-v1
 
 A source is either an ``eval.json`` written by ``mmada-rl eval`` or a training run directory

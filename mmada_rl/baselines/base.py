@@ -40,6 +40,7 @@ from torchrl.modules.vla import VLAWrapperBase
 
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
 from mmada_rl.baselines.normalization import ChunkNormalizer, NormalizationStats
+from mmada_rl.envs.maniskill import OBS_MODES
 from mmada_rl.policy.actor import ChunkExecutionMixin, check_execute_steps
 
 __all__ = ["POLICY_CONFIG", "POLICY_WEIGHTS", "ChunkPolicy", "ChunkPolicyConfig"]
@@ -47,8 +48,6 @@ __all__ = ["POLICY_CONFIG", "POLICY_WEIGHTS", "ChunkPolicy", "ChunkPolicyConfig"
 #: The file that marks a directory as a saved baseline policy (kind + config).
 POLICY_CONFIG = "policy.json"
 POLICY_WEIGHTS = "policy.safetensors"
-#: Observations a chunk policy can read (``ChunkPolicyConfig.obs_mode``).
-OBS_MODES = ("rgb", "state")
 
 
 @dataclass

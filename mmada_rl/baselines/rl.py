@@ -39,6 +39,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
 from mmada_rl.baselines.normalization import StateStandardizer
+from mmada_rl.envs.maniskill import OBS_MODES
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
 
 __all__ = [
@@ -59,7 +60,6 @@ AGENT_CONFIG = "rl_agent.json"
 AGENT_WEIGHTS = "rl_agent.pt"
 
 _ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "mish": nn.Mish, "gelu": nn.GELU}
-_OBS_MODES = ("state", "rgb")
 
 
 @dataclass
@@ -100,8 +100,8 @@ class RLNetworkConfig:
         if isinstance(self.encoder, dict):
             self.encoder = EncoderConfig(**self.encoder)
         self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
-        if self.obs_mode not in _OBS_MODES:
-            raise ValueError(f"obs_mode must be one of {_OBS_MODES}, got {self.obs_mode!r}.")
+        if self.obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}.")
         if self.activation not in _ACTIVATIONS:
             raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {self.activation!r}.")
         if not self.hidden_sizes or min(self.hidden_sizes) < 1:
@@ -119,8 +119,8 @@ class RLNetworkConfig:
 
 def observation_keys(obs_mode: str) -> list:
     """The observation entries a network reads: ``[state]`` or ``[image, state]``."""
-    if obs_mode not in _OBS_MODES:
-        raise ValueError(f"obs_mode must be one of {_OBS_MODES}, got {obs_mode!r}.")
+    if obs_mode not in OBS_MODES:
+        raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {obs_mode!r}.")
     return [IMAGE_KEY, STATE_KEY] if obs_mode == "rgb" else [STATE_KEY]
 
 

@@ -32,7 +32,8 @@ RewardMode = Literal["dense", "sparse"]
 
 #: Our reward names mapped to ManiSkill's reward modes.
 _REWARD_MODES = {"dense": "normalized_dense", "sparse": "sparse"}
-_OBS_MODES = ("rgb", "state")
+#: Observation modes: camera image + proprioception, or ManiSkill's privileged state vector.
+OBS_MODES = ("rgb", "state")
 #: Seeds of ``ParallelEnv`` worker ``w`` start at ``train_seed + w * WORKER_SEED_STRIDE``.
 WORKER_SEED_STRIDE = 100_000
 #: Info entry with the seed an episode was reset with (``mmada_rl.keys.GROUP_KEY`` in transitions).
@@ -77,8 +78,8 @@ class EnvConfig:
     group_size: int = 1
 
     def __post_init__(self) -> None:
-        if self.obs_mode not in _OBS_MODES:
-            raise ValueError(f"obs_mode must be one of {_OBS_MODES}, got {self.obs_mode!r}.")
+        if self.obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}.")
         if self.reward not in _REWARD_MODES:
             raise ValueError(f"reward must be 'dense' or 'sparse', got {self.reward!r}.")
         if not isinstance(self.image_size, int) or not 16 <= self.image_size <= 512:
