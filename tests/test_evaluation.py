@@ -118,7 +118,8 @@ def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run,
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     # the toy run logged a 1-episode evaluation at its last step; evaluate it again into an eval.json
-    evaluate(toy_pretrain_run, "PickCube-v1", 1, max_episode_steps=10, out_dir=tmp_path / "e1", progress=False)
+    model_dir = toy_pretrain_run / "checkpoints" / "step_00000006" / "model"  # what `mmada-rl eval` records
+    evaluate(model_dir, "PickCube-v1", 1, max_episode_steps=10, out_dir=tmp_path / "e1", progress=False)
     sources = [str(toy_pretrain_run), str(tmp_path / "e1" / "eval.json")]
     assert bench.main(["--group", "toy", *sources, "--name", "seeds_toy", "--out", str(tmp_path / "out")]) == 0
     group, = json.loads((tmp_path / "out" / "seeds_toy.json").read_text())["groups"]
