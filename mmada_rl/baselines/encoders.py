@@ -25,6 +25,7 @@ from torch import nn
 from torchrl.envs.transforms import Transform
 
 from mmada_rl.baselines.normalization import StateStandardizer
+from mmada_rl.data.windows import kept_state_dims
 from mmada_rl.keys import IMAGE_KEY
 
 __all__ = ["EncoderConfig", "ObservationEncoder", "POOLS", "RandomShift", "SpatialSoftmax", "random_shift"]
@@ -100,11 +101,7 @@ class ObservationEncoder(nn.Module):
         self.config, self.image_size = config, image_size
         self.cnn = None if image_size is None else self._build_cnn(config, image_size)
         self.standardize = StateStandardizer(state_dim, state_mean, state_std)
-        bad = [d for d in config.drop_state_dims if not 0 <= d < state_dim]
-        if bad or len(config.drop_state_dims) >= state_dim:
-            raise ValueError(f"drop_state_dims={list(config.drop_state_dims)} must name some, not all, of the "
-                             f"state's dimensions 0..{state_dim - 1}" + (f" ({bad} are not)." if bad else "."))
-        kept = [d for d in range(state_dim) if d not in config.drop_state_dims]
+        kept = kept_state_dims(config.drop_state_dims, state_dim, "drop_state_dims")
         self.register_buffer("state_index", torch.tensor(kept), persistent=False)
         self.state_mlp = nn.Sequential(nn.Linear(len(kept), config.state_features), nn.Mish(),
                                        nn.Linear(config.state_features, config.state_features), nn.Mish())

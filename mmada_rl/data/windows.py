@@ -218,6 +218,21 @@ def pad_state(state: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.nn.functional.pad(state, (0, dim - state.shape[-1]))
 
 
+def kept_state_dims(drop, dim: int, option: str) -> list[int]:
+    """The state dimensions ``0..dim-1`` a policy reads when the ones in ``drop`` are left out.
+
+    Raises:
+        ValueError: ``drop`` (the value of the config field ``option``) names a dimension
+            outside the state, or all of them.
+    """
+    drop = sorted({int(d) for d in drop})
+    bad = [d for d in drop if not 0 <= d < dim]
+    if bad or len(drop) >= dim:
+        raise ValueError(f"{option}={drop} must name some, not all, of the state's dimensions 0..{dim - 1}"
+                         + (f" ({bad} are not)." if bad else "."))
+    return [d for d in range(dim) if d not in drop]
+
+
 class MultiTaskWindows:
     """Chunk windows from several demonstration buffers (one per task), mixed in every batch.
 

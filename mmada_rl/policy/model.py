@@ -28,7 +28,7 @@ from safetensors.torch import load_file, save_file
 from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
 from torch import nn
 
-from mmada_rl.data.windows import pad_state
+from mmada_rl.data.windows import kept_state_dims, pad_state
 from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
@@ -181,12 +181,12 @@ class MMaDAModel(nn.Module):
         if tok is None:
             return torch.zeros(0, dtype=torch.long)
         drop, dims = self.config.proprio_drop_dims, tok.config.action_dim
-        if drop and tok.tokens_per_action != dims:
+        if not drop:
+            return torch.arange(tok.tokens_per_action)  # every token, whatever the tokenizer
+        if tok.tokens_per_action != dims:
             raise ValueError(f"proprio_drop_dims needs one proprio token per state dimension, but the proprio "
                              f"tokenizer writes {tok.tokens_per_action} tokens for {dims} dimensions.")
-        if any(d >= dims for d in drop) or len(drop) >= dims:
-            raise ValueError(f"proprio_drop_dims={drop} must name some, not all, of the state's dimensions 0..{dims - 1}.")
-        return torch.tensor([d for d in range(tok.tokens_per_action) if d not in drop], dtype=torch.long)
+        return torch.tensor(kept_state_dims(drop, dims, "proprio_drop_dims"), dtype=torch.long)
 
     def tokenizers(self) -> list[nn.Module]:
         return [t for t in (self.text_tokenizer, self.image_tokenizer, self.action_tokenizer, self.proprio_tokenizer) if t is not None]
