@@ -182,6 +182,25 @@ def test_skip_idle_start_draws_no_window_in_the_planners_leading_hold(push_demos
     _check_windows_of(batch, buf, chunk_size=2)  # the windows themselves are unchanged
 
 
+def test_skip_pauses_draws_no_window_at_the_planners_pauses_mid_episode(state_demos):
+    buf = DemoBuffer.open(state_demos)
+    paused = idle_actions(buf, tol=0.02)
+    bounds = buf.episode_bounds()
+    # the PickCube-v1 planner nearly stops the arm while it closes the gripper: pauses after it has moved
+    mid = [t for a, b in bounds for t in range(_leading_run(paused[a:b]), b - a) if paused[a + t]]
+    assert mid
+    batch = make_window_buffer(buf, 5, 2000, seed=0, skip_pauses=0.02).sample()
+    starts = {(int(e), int(t)) for e, t in zip(batch[EPISODE_KEY], batch[STEP_KEY].reshape(-1))}
+    episode = buf.storage[: len(buf)].get(EPISODE_KEY)
+    expected = {(int(episode[a]), t) for a, b in bounds for t in range(b - a) if not paused[a + t]}
+    assert starts == expected  # every moving step starts windows, no paused one does
+    chunks = batch[ACTION_CHUNK_KEY][..., :-1].abs().amax(-1)  # (N, K)
+    assert (chunks[:, 0] > 0.02).all() and (chunks[:, 1:] <= 0.02).any()  # pauses still inside windows
+    _check_windows_of(batch[:200], buf, chunk_size=5)
+    with pytest.raises(ValueError, match="skip_pauses=-0.1 must be >= 0"):
+        make_window_buffer(buf, 5, 8, skip_pauses=-0.1)
+
+
 def test_an_episode_that_only_holds_keeps_its_last_step_as_a_start(tmp_path):
     buf = _synthetic_buffer(tmp_path / "syn", [4, 3])  # action[..., 0] is the episode id: episode 0 "holds" throughout
     batch = make_window_buffer(buf, chunk_size=2, batch_size=300, seed=0, skip_idle_start=True).sample()

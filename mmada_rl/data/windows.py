@@ -22,6 +22,12 @@ starts in an episode's leading run of hold actions (every entry but the last,
 the gripper, ~0): ManiSkill's PushCube-v1 planner records 7 such steps before
 it moves, so a short chunk taken there teaches the policy to hold still in the
 start pose, which it then never leaves (see the README's chunk-size ablation).
+``skip_pauses=ε`` draws no window that starts at *any* step whose arm action is
+within ``ε`` of 0: the PickCube-v1 planner also nearly stops (arm actions
+~0.01) for the ~6 steps in which it closes the gripper and between its motion
+segments, and a policy that learns "still arm here → stay still" copies the
+pause instead of the motion after it (the copycat problem). Those steps still
+appear inside windows that start before them.
 """
 from __future__ import annotations
 
@@ -57,10 +63,9 @@ class ChunkWindowSampler(SliceSampler):
         chunk_size: ``K``, the number of actions per chunk.
         traj_key: the episode-id key. Defaults to ``"episode"``.
         cache_values: cache episode boundaries (static buffers). Defaults to ``True``.
-        no_start: optional bool ``[storage size]``: the leading run of True
-            steps of each episode is never a window start (the rest of the
-            episode still is, and those steps still appear inside windows).
-            An episode that is all True keeps its last step as a start.
+        no_start: optional bool ``[storage size]``: True steps are never a
+            window start (they still appear inside windows that start before
+            them). An episode that is all True keeps its last step as a start.
     """
 
     def __init__(self, chunk_size: int, *, traj_key=EPISODE_KEY, cache_values: bool = True,
@@ -76,23 +81,27 @@ class ChunkWindowSampler(SliceSampler):
         )
         self.chunk_size = chunk_size
         self.no_start = None if no_start is None else torch.as_tensor(no_start, dtype=torch.bool).reshape(-1)
-        self._offsets_cache: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # (starts, lengths, offsets)
+        self._starts_cache: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
-    def _start_offsets(self, starts: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-        """Per episode, how many leading steps ``no_start`` excludes (at most ``length - 1``);
+    def _window_starts(self, starts: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The allowed start steps of every episode, concatenated, and their per-episode counts;
         computed once per set of episodes."""
-        if self.no_start is None:
-            return torch.zeros_like(lengths)
-        cached = self._offsets_cache
+        cached = self._starts_cache
         if cached is not None and torch.equal(cached[0], starts) and torch.equal(cached[1], lengths):
-            return cached[2]
-        offsets = torch.zeros_like(lengths)
-        for i, (start, length) in enumerate(zip(starts.tolist(), lengths.tolist())):
-            index = (start + torch.arange(length)) % self.no_start.numel()
-            moving = (~self.no_start[index]).nonzero()
-            offsets[i] = int(moving[0]) if moving.numel() else length - 1
-        self._offsets_cache = (starts.clone(), lengths.clone(), offsets)
-        return offsets
+            return cached[2], cached[3]
+        if self.no_start is None:
+            counts = lengths.clone()
+            steps = torch.cat([torch.arange(n) for n in lengths.tolist()])
+        else:
+            per_episode = []
+            for start, length in zip(starts.tolist(), lengths.tolist()):
+                index = (start + torch.arange(length)) % self.no_start.numel()
+                allowed = (~self.no_start[index]).nonzero().reshape(-1)
+                per_episode.append(allowed if allowed.numel() else torch.tensor([length - 1]))
+            counts = torch.tensor([a.numel() for a in per_episode], dtype=lengths.dtype)
+            steps = torch.cat(per_episode)
+        self._starts_cache = (starts.clone(), lengths.clone(), steps.to(lengths.device), counts.to(lengths.device))
+        return self._starts_cache[2], self._starts_cache[3]
 
     def sample(self, storage, batch_size: int):
         window = self.chunk_size + 1
@@ -104,12 +113,11 @@ class ChunkWindowSampler(SliceSampler):
         num_windows = batch_size // window
         start_idx, _, lengths = self._get_stop_and_length(storage)
         starts, lengths = start_idx[:, 0], lengths.to(torch.long)
-        offsets = self._start_offsets(starts, lengths)
-        usable = lengths - offsets  # window starts per episode
-        ends = usable.cumsum(0)
+        steps, counts = self._window_starts(starts, lengths)
+        ends = counts.cumsum(0)
         flat = torch.randint(int(ends[-1]), (num_windows,), generator=self._rng, device=lengths.device)
         traj = torch.searchsorted(ends, flat, right=True)  # (N,)
-        t = flat - (ends[traj] - usable[traj]) + offsets[traj]  # step of the window start inside its episode
+        t = steps[flat]  # step of the window start inside its episode
         pos = t.unsqueeze(-1) + torch.arange(window, device=t.device)  # (N, K+1)
         length = lengths[traj].unsqueeze(-1)
         index = (starts[traj].unsqueeze(-1) + pos.clamp(max=length - 1)) % storage.shape[0]
@@ -164,8 +172,31 @@ def idle_actions(buffer, tol: float = 1e-4) -> torch.Tensor:
     return (actions[..., :-1].abs() <= tol).all(-1)
 
 
+def leading_run(mask: torch.Tensor, bounds) -> torch.Tensor:
+    """``mask`` restricted to each episode's leading run of True steps (``bounds``: ``(start, stop)`` per episode)."""
+    out = torch.zeros_like(mask)
+    for start, stop in bounds:
+        moving = (~mask[start:stop]).nonzero()
+        out[start:start + (int(moving[0]) if moving.numel() else stop - start)] = True
+    return out
+
+
+def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float = 0.0) -> torch.Tensor | None:
+    """The steps no chunk window may start at (``None``: any step), for :func:`make_window_buffer`'s options."""
+    if skip_pauses < 0:
+        raise ValueError(f"skip_pauses={skip_pauses} must be >= 0 (0: off).")
+    masks = []
+    if skip_idle_start:
+        masks.append(leading_run(idle_actions(buffer), buffer.episode_bounds()))
+    if skip_pauses > 0:
+        masks.append(idle_actions(buffer, tol=skip_pauses))
+    if not masks:
+        return None
+    return torch.stack(masks).any(0)
+
+
 def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None,
-                       skip_idle_start: bool = False) -> ReplayBuffer:
+                       skip_idle_start: bool = False, skip_pauses: float = 0.0) -> ReplayBuffer:
     """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
 
     Args:
@@ -176,6 +207,8 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
         seed: seeds the sampler's generator for reproducible batches.
         skip_idle_start: draw no window that starts in an episode's leading
             hold actions (:func:`idle_actions`; a motion planner's wait before it moves).
+        skip_pauses: draw no window that starts at any step whose arm action (every entry but the
+            gripper) is within this of 0 (a planner's pauses, e.g. while the gripper closes); 0: off.
 
     Examples:
         >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)
@@ -193,7 +226,8 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             f"chunk_size={chunk_size} is longer than every episode in {buffer.path} "
             f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
         )
-    sampler = ChunkWindowSampler(chunk_size, no_start=idle_actions(buffer) if skip_idle_start else None)
+    sampler = ChunkWindowSampler(chunk_size, no_start=no_start_steps(buffer, skip_idle_start=skip_idle_start,
+                                                                     skip_pauses=skip_pauses))
     transform = Compose(
         ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
         InstructionLookup(buffer.metadata.instructions),
@@ -255,7 +289,7 @@ class MultiTaskWindows:
             (proportional to stored transitions, as one merged buffer would be)
             or one non-negative weight per buffer.
         seed: seeds the task draw and every member's sampler.
-        skip_idle_start: as for :func:`make_window_buffer`, in every buffer.
+        skip_idle_start, skip_pauses: as for :func:`make_window_buffer`, in every buffer.
 
     Examples:
         >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)
@@ -264,7 +298,7 @@ class MultiTaskWindows:
     """
 
     def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None,
-                 skip_idle_start: bool = False):
+                 skip_idle_start: bool = False, skip_pauses: float = 0.0):
         buffers = list(buffers)
         if not buffers:
             raise ValueError("MultiTaskWindows needs at least one buffer.")
@@ -280,7 +314,8 @@ class MultiTaskWindows:
         self.probabilities = weights / weights.sum()
         self.state_dim = max(b.metadata.state_dim for b in buffers)
         self.members = [
-            make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i, skip_idle_start=skip_idle_start)
+            make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i,
+                               skip_idle_start=skip_idle_start, skip_pauses=skip_pauses)
             for i, b in enumerate(buffers)
         ]
         self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()

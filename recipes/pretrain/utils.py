@@ -92,12 +92,13 @@ def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
     """Chunk-window sampler over the demonstrations (seeded, so resumption replays the same batches);
     with several tasks, every batch mixes their windows (``data.task_weights``)."""
     K, batch, seed = int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), int(cfg.seed)
-    skip_idle = bool(cfg.data.get("skip_idle_start", False))
+    skips = {"skip_idle_start": bool(cfg.data.get("skip_idle_start", False)),
+             "skip_pauses": float(cfg.data.get("skip_pauses", 0.0))}
     if len(buffers) == 1:
-        return make_window_buffer(buffers[0], K, batch, seed=seed, skip_idle_start=skip_idle)
+        return make_window_buffer(buffers[0], K, batch, seed=seed, **skips)
     weights = cfg.data.get("task_weights", "uniform")
     weights = weights if isinstance(weights, str) else list(weights)
-    return MultiTaskWindows(buffers, K, batch, weights=weights, seed=seed, skip_idle_start=skip_idle)
+    return MultiTaskWindows(buffers, K, batch, weights=weights, seed=seed, **skips)
 
 
 def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
