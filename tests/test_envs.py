@@ -124,3 +124,27 @@ def test_readme_environment_snippet():
         assert td["next", "success"].dtype == torch.bool
     finally:
         env.close()
+
+
+def test_an_episode_starts_with_its_own_contacts_not_the_previous_ones(state_demos):
+    """ManiSkill's CPU contact query answers from the last physics step; after a planner episode that ends
+    with the cube in hand, the next reset must not report the cube grasped (``make_gym_env`` refreshes it)."""
+    from mmada_rl.data import DemoBuffer
+
+    buf = DemoBuffer.open(state_demos)
+    state = buf.storage[: len(buf)].get(STATE_KEY)
+    grasped = 18  # PickCube-v1's state: qpos (9), qvel (9), then extra/is_grasped
+    (_, end0), (start1, _) = buf.episode_bounds()[:2]
+    assert state[end0 - 1, grasped] == 1  # the first episode ends holding the cube
+    assert state[start1, grasped] == 0  # the next one starts in the rest pose, grasping nothing
+
+
+def test_reset_after_the_contact_refresh_is_reproducible():
+    env = make_gym_env(EnvConfig(task="PickCube-v1", obs_mode="state"))
+    try:
+        first, _ = env.reset(seed=3)
+        env.step(env.action_space.sample())
+        again, _ = env.reset(seed=3)
+    finally:
+        env.close()
+    assert (first["proprio"] == again["proprio"]).all()

@@ -153,6 +153,34 @@ class CanonicalObservation(gym.Wrapper):
         return self._obs(obs), float(reward), bool(terminated), bool(truncated), self._info(info)
 
 
+class FreshContactsOnReset(gym.Wrapper):
+    """Recompute the reset observation and info with the contacts of the new initial state.
+
+    On the CPU backend ManiSkill answers contact queries (``is_grasping``, hence
+    PickCube-v1's ``is_grasped`` state entry and its reward terms) from the last
+    physics step, and a reset moves the bodies without stepping: the first
+    observation of an episode reports the contacts of the previous episode's
+    last step. After every episode that ends with the cube in hand (each
+    planner demonstration does), the next one would start "grasped" with the
+    gripper open in its rest pose, and only its first observation says so.
+    This wrapper runs one physics step from the reset state, puts the state
+    back exactly, and reads the observation and info again.
+
+    Wraps the env returned by ``gym.make`` (inside the observation wrappers).
+    """
+
+    def reset(self, **kwargs):
+        _, info = self.env.reset(**kwargs)
+        base = self.env.unwrapped
+        state = base.get_state_dict()
+        base.scene.px.step()  # contacts at the reset configuration (velocities are zero)
+        base.set_state_dict(state)
+        fresh = base.get_info()
+        obs = base.get_obs(fresh)
+        base._last_obs = obs
+        return obs, {**info, **fresh}
+
+
 class SeedSchedule(gym.Wrapper):
     """Reset episode ``e`` with seed ``first_seed + e // group_size`` unless a seed is given.
 
@@ -223,6 +251,7 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
         raise
     except (AssertionError, KeyError) as err:
         raise ValueError(f"ManiSkill could not build {cfg.task!r} with control_mode={cfg.control_mode!r}: {err}") from err
+    env = FreshContactsOnReset(env)
     if cfg.obs_mode == "rgb":
         env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
     env = CPUGymWrapper(env, ignore_terminations=cfg.ignore_terminations)
