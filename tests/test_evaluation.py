@@ -141,3 +141,21 @@ def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run,
         bench.main(["--group", "no sources", "--out", str(tmp_path)])
     with pytest.raises(FileNotFoundError, match="neither"):
         bench.main(["--group", "toy", str(tmp_path / "missing"), "--out", str(tmp_path)])
+
+
+def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_run, tmp_path):
+    spec = importlib.util.spec_from_file_location("push_contact", Path(__file__).parents[1] / "benchmarks" / "push_contact.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    # the toy PickCube-v1 policy run in PushCube-v1 (its smaller state is zero-padded): a real rollout, not a good one
+    assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
+                       "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "push_contact.json").read_text())
+    assert [e["seed"] for e in result["episodes"]] == eval_seeds(2)
+    for e in result["episodes"]:
+        assert isinstance(e["success"], bool)
+        assert e["down_dx_dy_cm"] is None or len(e["down_dx_dy_cm"]) == 2
+    groups = result["groups"]
+    assert groups["success"]["episodes"] + groups["failure"]["episodes"] == 2
+    assert "median |dy| (cm)" in (tmp_path / "push_contact.md").read_text()
+    assert (tmp_path / "push_contact.png").stat().st_size > 0
