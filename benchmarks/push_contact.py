@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                "episodes": episodes}
     fmt = lambda v: "–" if v is None else f"{v:.1f}"  # noqa: E731
     table = markdown_table(
-        ["episodes", "count", "TCP came down near the cube", "median |dy| (cm)", "median dx (cm)"],
+        ["episodes", "count", "TCP came down near the cube", "median abs(dy) (cm)", "median dx (cm)"],
         [[name, g["episodes"], g["came_down"], fmt(g["median_abs_dy_cm"]), fmt(g["median_dx_cm"])] for name, g in groups.items()])
     markdown = (f"# Where the gripper comes down on PushCube-v1: `{args.checkpoint}`\n\n"
                 f"TCP offset from the cube at the first decision with the TCP < {DOWN_CM} cm above the cube's centre "

@@ -157,5 +157,5 @@ def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_r
         assert e["down_dx_dy_cm"] is None or len(e["down_dx_dy_cm"]) == 2
     groups = result["groups"]
     assert groups["success"]["episodes"] + groups["failure"]["episodes"] == 2
-    assert "median |dy| (cm)" in (tmp_path / "push_contact.md").read_text()
+    assert "median abs(dy) (cm)" in (tmp_path / "push_contact.md").read_text()
     assert (tmp_path / "push_contact.png").stat().st_size > 0
