@@ -59,6 +59,7 @@ def summarize(run: Path) -> dict:
         "chunk_size": int(config["model"]["chunk_size"]),
         "execute_steps": int(config["eval"]["execute_steps"]),
         "skip_idle_start": bool(config.get("data", {}).get("skip_idle_start", False)),
+        "skip_pauses": float(config.get("data", {}).get("skip_pauses", 0.0)),
         # from the run's own image tokenizer (it may come from tokenizers.dir, not this run's config)
         "image_foreground_weight": float(json.loads((ckpts[-1] / "model" / "tokenizers" / "image" / "config.json").read_text())
                                          ["config"].get("foreground_weight", 1.0)),
@@ -92,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         common = [r["action_tokenizer"], "yes" if r["predict_goal"] else "no", f"{r['chunk_size']} / {r['execute_steps']}",
                   r["denoiser"], f"{r['steps']} / {r['planned_steps']}", f"{last_acc:.2f}"]
         options = ((" (no window in the leading hold)" if r["skip_idle_start"] else "")
+                   + (f" (no window starting in a pause, {r['skip_pauses']:g})" if r["skip_pauses"] else "")
                    + (f" (image foreground weight {r['image_foreground_weight']:g})" if r["image_foreground_weight"] != 1 else ""))
         if r["per_task"]:
             rows += [[f"{task} (multi-task, {len(r['tasks'])} tasks){options}", *common, format_evaluations(evals)]
@@ -108,10 +110,14 @@ def main(argv: list[str] | None = None) -> int:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
+    planned = [r["planned_steps"] for r in runs]
+    usual = max(set(planned), key=planned.count)  # schedules of another length are named in the legend
     for r in runs:
         name = r["task"] if len(r["tasks"]) == 1 else "multi-task"
         ablated = (("" if r["predict_goal"] else ", no goal") + ("" if r["chunk_size"] == 5 else f", K={r['chunk_size']}")
                    + (", skip idle start" if r["skip_idle_start"] else "")
+                   + (f", skip pauses {r['skip_pauses']:g}" if r["skip_pauses"] else "")
+                   + (f", {r['planned_steps']} steps" if r["planned_steps"] != usual else "")
                    + (f", image fg x{r['image_foreground_weight']:g}" if r["image_foreground_weight"] != 1 else ""))
         label = f"{name} {r['action_tokenizer']}{ablated}"
         if r["action_accuracy"]:
