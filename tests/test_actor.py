@@ -11,7 +11,19 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mmada_rl.diffusion.path import DecodingPath, path_log_prob
 from mmada_rl.envs.maniskill import EnvConfig, make_env
-from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, ACTION_TOKENS_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
+from mmada_rl.keys import (
+    ACTION_CHUNK_KEY,
+    ACTION_IS_PAD_KEY,
+    ACTION_KEY,
+    ACTION_TOKENS_KEY,
+    ADVANTAGE_KEY,
+    GOAL_IMAGE_KEY,
+    IMAGE_KEY,
+    INSTRUCTION_KEY,
+    STATE_KEY,
+)
+from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss
 from mmada_rl.policy import (
     DECODING_PATH_KEY,
     PREDICTED_GOAL_IMAGE_KEY,
@@ -144,6 +156,49 @@ def test_stored_path_log_prob_is_recomputed_exactly(model, observations):
         torch.testing.assert_close(replayed, td[LOG_PROBS_KEY], rtol=1e-4, atol=1e-3)
         rescored = actor.log_prob(td.clone(), log_probs_key="rescored")["rescored"]
     torch.testing.assert_close(rescored, td[LOG_PROBS_KEY], rtol=1e-4, atol=1e-3)
+
+
+def test_policy_cross_attends_to_its_own_cnn_features_of_the_image(model, observations, tmp_path):
+    """``visual_encoder_channels``: the denoiser reads the observation image through a CNN it trains."""
+    tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
+    overrides = {"cross_attention_to_visual": True, "visual_encoder_channels": [8, 16, 32]}
+    config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3}, denoiser_overrides=overrides)
+    torch.manual_seed(0)
+    seeing = MMaDAModel(config, tokenizers).eval()
+    obs = observations[:3].clone()
+    # the CNN's features change the logits: a shifted image gives other target logits for the same ids
+    ids, level = seeing.prompt(obs), torch.ones(3)
+    shifted = obs.clone()
+    shifted[IMAGE_KEY] = torch.roll(shifted[IMAGE_KEY], 8, dims=-1)
+    logits = [seeing.denoiser(ids, level, visual=seeing.visual_input(o)) for o in (obs, shifted)]
+    assert not torch.allclose(logits[0], logits[1])
+    actor = MMaDAActor(seeing)
+    with set_exploration_type(ExplorationType.RANDOM):
+        td = actor(obs, generator=torch.Generator().manual_seed(0))
+    assert td[ACTION_CHUNK_KEY].shape == (3, CHUNK, 7)
+    with torch.no_grad():  # the stored path is rescored with the same images
+        rescored = actor.log_prob(td.clone(), log_probs_key="rescored")["rescored"]
+    torch.testing.assert_close(rescored, td[LOG_PROBS_KEY], rtol=1e-4, atol=1e-3)
+    ppo = td.clone().set(VISUAL_FEATURES_KEY, obs[IMAGE_KEY]).set(ADVANTAGE_KEY, torch.ones(3))
+    assert float(PathPPOLoss(seeing.denoiser)(ppo)["ratio_mean"]) == pytest.approx(1.0, abs=1e-4)
+    # the masked-diffusion loss trains the CNN with the denoiser
+    windows = obs.clone()
+    windows.set(ACTION_CHUNK_KEY, td[ACTION_CHUNK_KEY])
+    windows.set(GOAL_IMAGE_KEY, shifted[IMAGE_KEY])
+    windows.set(ACTION_IS_PAD_KEY, torch.zeros(3, CHUNK, dtype=torch.bool))
+    rows = seeing.loss_inputs(windows)
+    assert torch.equal(rows[VISUAL_FEATURES_KEY], obs[IMAGE_KEY])
+    losses = MaskedDiffusionLoss(seeing.denoiser)(rows)
+    (losses["loss_action"] + losses["loss_goal"]).backward()
+    conv = seeing.denoiser.visual_encoder.cnn[0].weight
+    assert conv.grad is not None and conv.grad.abs().sum() > 0
+    reloaded = MMaDAModel.load(seeing.save(tmp_path / "seeing")).eval()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        torch.testing.assert_close(MMaDAActor(reloaded)(obs.clone())[ACTION_TOKENS_KEY], actor(obs.clone())[ACTION_TOKENS_KEY])
+    with pytest.raises(ValueError, match="visual_encoder_channels"):
+        MMaDAModel(MMaDAConfig(denoiser="tiny", denoiser_overrides={"cross_attention_to_visual": True}), tokenizers)
+    with pytest.raises(ValueError, match="needs cross_attention_to_visual"):
+        MMaDAConfig(denoiser="tiny", denoiser_overrides={"visual_encoder_channels": [8]})
 
 
 def test_set_keys_moves_our_fields_with_the_root(model):

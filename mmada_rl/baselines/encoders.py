@@ -15,7 +15,6 @@ training windows only, never what the policy sees in the env.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -26,6 +25,7 @@ from torchrl.envs.transforms import Transform
 
 from mmada_rl.baselines.normalization import StateStandardizer
 from mmada_rl.data.windows import kept_state_dims
+from mmada_rl.diffusion.visual import conv_stack
 from mmada_rl.keys import IMAGE_KEY
 
 __all__ = ["EncoderConfig", "ObservationEncoder", "POOLS", "RandomShift", "SpatialSoftmax", "random_shift"]
@@ -112,16 +112,13 @@ class ObservationEncoder(nn.Module):
         if image_size % stride:
             raise ValueError(f"image_size={image_size} is not a multiple of 2**len(channels)={stride}; "
                              f"use fewer encoder channels or another image size.")
-        layers, width = [], 3
-        for out in config.channels:
-            layers += [nn.Conv2d(width, out, 3, stride=2, padding=1), nn.GroupNorm(math.gcd(out, config.norm_groups), out), nn.Mish()]
-            width = out
+        width = config.channels[-1]
         side = image_size // stride
         if config.pool == "spatial_softmax":
             pool, pooled = SpatialSoftmax(width, config.num_keypoints, side, side), 2 * config.num_keypoints
         else:
             pool, pooled = nn.Flatten(), width * side * side
-        return nn.Sequential(*layers, pool, nn.Linear(pooled, config.image_features),
+        return nn.Sequential(*conv_stack(config.channels, config.norm_groups), pool, nn.Linear(pooled, config.image_features),
                              nn.LayerNorm(config.image_features), nn.Mish())
 
     @property

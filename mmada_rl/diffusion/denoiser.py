@@ -3,7 +3,9 @@
 A pre-norm transformer: token + learned position + segment (modality role)
 embeddings, plus an embedding of the noise level added to every position;
 self-attention bidirectional or block-causal (per the layout); an optional
-cross-attention sublayer per block to visual features ``[B, N, d_vis]``. The
+cross-attention sublayer per block to visual features ``[B, N, d_vis]`` — given
+as such, or computed from the observation image by a CNN the denoiser owns and
+trains (``visual_encoder_channels``). The
 output head covers the whole vocabulary (tied to the token embeddings by
 default) and every position's logits are set to ``-inf`` outside the id range
 the layout allows there, so targets can only emit ids of their own modality.
@@ -19,6 +21,7 @@ from torch import nn
 from mmada_rl.diffusion.keys import LOGITS_KEY, VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.pretrained import load_pretrained_text_embeddings
 from mmada_rl.diffusion.transformer import NoiseLevelEmbedding, TransformerBlock
+from mmada_rl.diffusion.visual import ConvPatchEncoder
 from mmada_rl.keys import NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.tokenizers.layout import SEGMENTS, SequenceLayout
 
@@ -50,6 +53,11 @@ class DenoiserConfig:
         cross_attention_to_visual: add a cross-attention sublayer per block over
             visual features given to ``forward(visual=...)``.
         visual_dim: width ``d_vis`` of those features (defaults to ``d_model``).
+        visual_encoder_channels: widths of a :class:`~mmada_rl.diffusion.visual.ConvPatchEncoder`
+            owned by the denoiser (needs ``cross_attention_to_visual``): ``visual``
+            is then the uint8 observation image ``[B, 3, H, W]``, and its CNN
+            features (one per cell of the last feature map) are what the
+            sequence attends to. ``None``: ``visual`` holds the features already.
         tie_embeddings: share the output head with the token embeddings.
         pretrained_path: local HuggingFace checkpoint whose input embeddings
             initialise the text rows (needs ``transformers``; never downloads).
@@ -66,6 +74,7 @@ class DenoiserConfig:
     attention: str = "bidirectional"
     cross_attention_to_visual: bool = False
     visual_dim: int | None = None
+    visual_encoder_channels: list[int] | None = None
     tie_embeddings: bool = True
     pretrained_path: str | None = None
 
@@ -84,6 +93,19 @@ class DenoiserConfig:
             raise ValueError(f"attention must be 'bidirectional' or 'block_causal', got {self.attention!r}.")
         if self.visual_dim is not None and (not isinstance(self.visual_dim, int) or self.visual_dim < 1):
             raise ValueError(f"visual_dim must be a positive int or None, got {self.visual_dim!r}.")
+        if self.visual_encoder_channels is not None:
+            self.visual_encoder_channels = [int(c) for c in self.visual_encoder_channels]
+            if not self.cross_attention_to_visual:
+                raise ValueError("visual_encoder_channels needs cross_attention_to_visual=true "
+                                 "(the encoder's features are read by the cross-attention).")
+            if self.visual_dim is not None and self.visual_dim != self.visual_encoder_channels[-1]:
+                raise ValueError(f"visual_dim={self.visual_dim} differs from the encoder's last width "
+                                 f"{self.visual_encoder_channels[-1]}; leave visual_dim unset.")
+
+    @property
+    def encodes_images(self) -> bool:
+        """Whether ``visual`` is the raw observation image (the denoiser owns the CNN)."""
+        return self.visual_encoder_channels is not None
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "DenoiserConfig":
@@ -123,9 +145,12 @@ class MaskedDiffusionDenoiser(nn.Module):
         self.position_embedding = nn.Parameter(torch.zeros(length, dim))
         self.segment_embedding = nn.Embedding(len(SEGMENTS), dim)
         self.noise_embedding = NoiseLevelEmbedding(dim)
-        self.visual_proj = None
+        self.visual_proj = self.visual_encoder = None
+        if config.encodes_images:
+            self.visual_encoder = ConvPatchEncoder(config.visual_encoder_channels)
         if config.cross_attention_to_visual:
-            self.visual_proj = nn.Sequential(nn.Linear(config.visual_dim or dim, dim), nn.LayerNorm(dim))
+            visual_dim = self.visual_encoder.out_features if self.visual_encoder else config.visual_dim or dim
+            self.visual_proj = nn.Sequential(nn.Linear(visual_dim, dim), nn.LayerNorm(dim))
         self.blocks = nn.ModuleList(
             TransformerBlock(dim, config.num_heads, config.mlp_ratio, config.dropout, config.cross_attention_to_visual)
             for _ in range(config.num_layers)
@@ -158,6 +183,11 @@ class MaskedDiffusionDenoiser(nn.Module):
                 nn.init.normal_(layer.weight, std=0.02 / (2 * self.config.num_layers) ** 0.5)
 
     @property
+    def visual_ndim(self) -> int:
+        """Dimensions of one sample's ``visual`` input plus the batch: 4 for images, 3 for features."""
+        return 4 if self.visual_encoder is not None else 3
+
+    @property
     def vocab_size(self) -> int:
         return self.layout.vocab.size
 
@@ -180,9 +210,12 @@ class MaskedDiffusionDenoiser(nn.Module):
         if self.visual_proj is None and visual is not None:
             raise ValueError("visual features given but cross_attention_to_visual=False.")
         if self.visual_proj is not None:
-            if visual is None or visual.ndim != 3 or visual.shape[0] != ids.shape[0]:
+            expected = f"[{ids.shape[0]}, 3, H, W] uint8 images" if self.visual_encoder else f"[{ids.shape[0]}, N, d_vis]"
+            if visual is None or visual.ndim != self.visual_ndim or visual.shape[0] != ids.shape[0]:
                 got = None if visual is None else list(visual.shape)
-                raise ValueError(f"visual: expected shape [{ids.shape[0]}, N, d_vis], got {got}.")
+                raise ValueError(f"visual: expected shape {expected}, got {got}.")
+            if self.visual_encoder is not None:
+                visual = self.visual_encoder(visual)  # (B, N, C)
             visual = self.visual_proj(visual)  # (B, N, D)
         x = self.token_embedding(ids) + self.position_embedding + self.segment_embedding(self.segment_ids)
         x = x + self.noise_embedding(noise_level)[:, None, :]  # (B, L, D)
@@ -210,7 +243,8 @@ class MaskedDiffusionDenoiser(nn.Module):
         Args:
             ids: global ids ``[*B, L]``.
             noise_level: masking ratio per sample ``[*B]`` (or a scalar).
-            visual: visual features ``[*B, N, d_vis]`` (only with cross-attention).
+            visual: visual features ``[*B, N, d_vis]``, or images ``[*B, 3, H, W]``
+                when the denoiser has its own encoder (only with cross-attention).
             positions: which positions to score; asking only for the targets
                 saves the head's ``L × V`` product on the conditioning.
         """
@@ -220,7 +254,7 @@ class MaskedDiffusionDenoiser(nn.Module):
         if noise_level.ndim:
             noise_level = noise_level.reshape(-1)
         if visual is not None:
-            visual = visual.reshape(-1, *visual.shape[-2:])
+            visual = visual.reshape(-1, *visual.shape[-(self.visual_ndim - 1):])
         hidden = self.encode(flat_ids, noise_level, visual)  # (B, L, D)
         if positions is None:
             positions = torch.arange(self.layout.length, device=ids.device)

@@ -35,6 +35,7 @@ class ScoredPositions(NamedTuple):
     segment: torch.Tensor  # (M,) segment id (SEGMENTS order)
     noisy: torch.Tensor  # (B, L) the denoiser's input
     noise_level: torch.Tensor  # (B,)
+    visual: torch.Tensor | None  # the denoiser's visual input (features or images), if any
     num_scored: torch.Tensor  # () M
     batch: int  # B
 
@@ -95,7 +96,9 @@ class MaskedDiffusionLoss(LossModule):
             noisy_sequence: a given corruption of it ``[*B, L]`` (optional input).
             corrupted: the positions it corrupted, bool ``[*B, L]`` (optional input).
             noise_level: its masking ratio ``[*B]`` (optional input). Defaults to ``NOISE_LEVEL_KEY``.
-            visual: visual features ``[*B, N, d_vis]`` (read with cross-attention only).
+            visual: visual features ``[*B, N, d_vis]``, or the observation images
+                ``[*B, 3, H, W]`` when the denoiser encodes them itself (read with
+                cross-attention only).
             action_is_pad: bool ``[*B, K]``, chunk steps past the episode end (optional).
         """
 
@@ -208,7 +211,7 @@ class MaskedDiffusionLoss(LossModule):
         visual = None
         if self.cross_attention:
             visual = tensordict.get(keys.visual)
-            visual = visual.reshape(batch, *visual.shape[-2:])
+            visual = visual.reshape(batch, *visual.shape[-(self.denoiser_network.module.visual_ndim - 1):])
 
         scored = corrupted & self._sample_valid(tensordict, batch, device)[:, None]  # (B, L)
         is_pad = tensordict.get(keys.action_is_pad, None)
@@ -225,7 +228,7 @@ class MaskedDiffusionLoss(LossModule):
         segment = layout.segment_ids.to(device)[cols]
         return ScoredPositions(
             rows=rows, cols=cols, logits=logits, targets=clean[rows, cols], ce=ce, segment=segment,
-            noisy=noisy, noise_level=noise_level, num_scored=scored.sum(), batch=batch,
+            noisy=noisy, noise_level=noise_level, visual=visual, num_scored=scored.sum(), batch=batch,
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:

@@ -24,6 +24,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
 from mmada_rl.diffusion.denoiser import MaskedDiffusionDenoiser, make_denoiser_module
+from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.path import path_log_prob
 from mmada_rl.keys import ADVANTAGE_KEY, VLA_ACTION_KEY
 
@@ -66,10 +67,14 @@ class PathPPOLoss(LossModule):
         Attributes:
             path: the stored :class:`DecodingPath` ``[*B]``.
             advantage: the chunk's advantage ``[*B]`` (a trailing singleton dim is accepted).
+            visual: the denoiser's visual input while sampling (read with cross-attention
+                only): features ``[*B, N, d_vis]``, or the observation images
+                ``[*B, 3, H, W]`` when the denoiser encodes them itself.
         """
 
         path: NestedKey = (VLA_ACTION_KEY, "path")
         advantage: NestedKey = ADVANTAGE_KEY
+        visual: NestedKey = VISUAL_FEATURES_KEY
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -92,6 +97,7 @@ class PathPPOLoss(LossModule):
         super().__init__()
         if not isinstance(denoiser, TensorDictModule):
             denoiser = make_denoiser_module(denoiser)
+        self.cross_attention = bool(denoiser.module.config.cross_attention_to_visual)
         self.convert_to_functional(denoiser, "denoiser_network")
         self.clip_epsilon, self.ratio_level = float(clip_epsilon), ratio_level
         self.normalize_advantage = bool(normalize_advantage)
@@ -101,7 +107,8 @@ class PathPPOLoss(LossModule):
 
     @property
     def in_keys(self) -> list[NestedKey]:
-        return [self.tensor_keys.path, self.tensor_keys.advantage]
+        keys = [self.tensor_keys.path, self.tensor_keys.advantage]
+        return keys + [self.tensor_keys.visual] if self.cross_attention else keys
 
     @property
     def out_keys(self) -> list[str]:
@@ -113,8 +120,12 @@ class PathPPOLoss(LossModule):
         advantage = tensordict.get(self.tensor_keys.advantage).reshape(path.shape[0]).float()  # (B,)
         if self.normalize_advantage and advantage.numel() > 1:
             advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(1e-6)
+        visual = None
+        if self.cross_attention:
+            visual = tensordict.get(self.tensor_keys.visual)
+            visual = visual.reshape(path.shape[0], *visual.shape[-(self.denoiser_network.module.visual_ndim - 1):])
         with self.denoiser_network_params.to_module(self.denoiser_network):
-            new = path_log_prob(self.denoiser_network.module, path, per_token=True)  # (B, N, T)
+            new = path_log_prob(self.denoiser_network.module, path, visual, per_token=True)  # (B, N, T)
         old = path.log_probs  # (B, N, T), 0 where nothing was committed
         committed = path.committed
         if self.ratio_level == "token":

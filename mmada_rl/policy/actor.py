@@ -239,7 +239,10 @@ class MMaDAActor(ChunkExecutionMixin, VLAWrapperBase):
         path = tensordict.get(self._tensor_keys.decoding_path)
         batch = tensordict.batch_size
         flat = path.reshape(-1).to(next(self.model.denoiser.parameters()).device)  # (B,)
-        log_probs = path_log_prob(self.model.denoiser, flat).reshape(batch)  # (*B,)
+        visual = self.model.visual_input(tensordict)  # the observation images, with cross-attention
+        if visual is not None:
+            visual = visual.to(flat.inputs.device)
+        log_probs = path_log_prob(self.model.denoiser, flat, visual).reshape(batch)  # (*B,)
         tensordict.set(self._tensor_keys.log_probs if log_probs_key is None else log_probs_key, log_probs)
         return tensordict
 

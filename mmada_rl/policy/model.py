@@ -30,6 +30,7 @@ from torch import nn
 
 from mmada_rl.data.windows import kept_state_dims, pad_state
 from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
+from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.keys import (
@@ -173,6 +174,9 @@ class MMaDAModel(nn.Module):
             self.vocab,
         )
         self.denoiser = MaskedDiffusionDenoiser(config.denoiser_config(), self.layout)
+        if self.denoiser.config.cross_attention_to_visual and self.denoiser.visual_encoder is None:
+            raise ValueError("the policy's cross-attention needs the denoiser to encode the observation image: "
+                             "set denoiser_overrides.visual_encoder_channels (e.g. [32, 64, 128]).")
         self.sampler = MaskedDiffusionSampler(config.sampler_config())
 
     def _proprio_index(self) -> torch.Tensor:
@@ -229,6 +233,14 @@ class MMaDAModel(nn.Module):
             raise ValueError(f"{out['text_ids'].shape[0]} instructions for a batch of {tuple(batch)}.")
         return out
 
+    def visual_input(self, td: TensorDictBase) -> torch.Tensor | None:
+        """The denoiser's visual input for observations ``td``: the images ``[B, 3, H, W]``
+        when it cross-attends to its own CNN features of them, else ``None``."""
+        if self.denoiser.visual_encoder is None:
+            return None
+        image = td.get(IMAGE_KEY)
+        return image.reshape(-1, *image.shape[-3:])
+
     @torch.no_grad()
     def sequence(self, td: TensorDictBase, action_tokens: torch.Tensor | None = None) -> torch.Tensor:
         """Clean global ids ``[B, L]`` of training windows (needs the chunk and, if predicted, the goal image).
@@ -254,10 +266,15 @@ class MMaDAModel(nn.Module):
 
     def loss_inputs(self, windows: TensorDictBase) -> TensorDict:
         """What a masked-diffusion loss reads from a batch of chunk windows: the clean
-        sequence ``[B, L]`` and the chunk's padding flags ``[B, K]``."""
+        sequence ``[B, L]``, the chunk's padding flags ``[B, K]`` and, with
+        cross-attention, the visual input (:meth:`visual_input`)."""
         ids = self.sequence(windows)
-        return TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY)},
+        rows = TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY)},
                           batch_size=[ids.shape[0]], device=ids.device)
+        visual = self.visual_input(windows)
+        if visual is not None:
+            rows.set(VISUAL_FEATURES_KEY, visual)
+        return rows
 
     @torch.no_grad()
     def prompt(self, td: TensorDictBase) -> torch.Tensor:
@@ -271,7 +288,8 @@ class MMaDAModel(nn.Module):
         was_training = self.denoiser.training
         self.denoiser.eval()
         try:
-            result = self.sampler.sample(self.denoiser, self.prompt(td), greedy=greedy, generator=generator)
+            result = self.sampler.sample(self.denoiser, self.prompt(td), visual=self.visual_input(td),
+                                         greedy=greedy, generator=generator)
         finally:
             self.denoiser.train(was_training)
         chunk = self.action_tokenizer.decode(result.action_tokens)  # (B, K, A)

@@ -18,6 +18,7 @@ from mmada_rl import training
 from mmada_rl.baselines import NormalizationStats
 from mmada_rl.baselines.encoders import EncoderConfig
 from mmada_rl.data import DemoBuffer, make_window_buffer
+from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig, make_env
 from mmada_rl.evaluation import EVAL_SEED_BASE, resolve_model_dir
@@ -179,6 +180,9 @@ def decision_rows(model: MMaDAModel, batch: TensorDictBase) -> TensorDict:
         {SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: is_pad, IMAGE_KEY: flat.get(IMAGE_KEY), STATE_KEY: flat.get(STATE_KEY)},
         batch_size=[ids.shape[0]],
     )
+    visual = model.visual_input(flat)  # the observation images, with cross-attention
+    if visual is not None:
+        rows.set(VISUAL_FEATURES_KEY, visual)
     rows.set(DECODING_PATH_KEY, flat.get(DECODING_PATH_KEY))
     for key in (ADVANTAGE_KEY, VALUE_TARGET_KEY):
         rows.set(key, flat.get(key).reshape(ids.shape[0], -1)[:, 0] if key == ADVANTAGE_KEY else flat.get(key).reshape(ids.shape[0], 1))
