@@ -23,6 +23,7 @@ from mmada_rl.envs.tasks import UnknownTaskError
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
     ACTION_IS_PAD_KEY,
+    ACTION_KEY,
     EPISODE_KEY,
     GOAL_IMAGE_KEY,
     GOAL_IS_CLIPPED_KEY,
@@ -321,3 +322,23 @@ def test_scripted_expert_refuses_other_tasks_and_control_modes(tmp_path):
         collect(tmp_path / "a", EnvConfig(task="StackCube-v1", obs_mode="state"), episodes=1, policy="scripted", progress=False)
     with pytest.raises(ValueError, match="pd_ee_delta_pose"):
         collect(tmp_path / "b", EnvConfig(task="PushCube-v1", obs_mode="state", control_mode="pd_joint_delta_pos"), episodes=1, policy="scripted", progress=False)
+
+
+def test_keep_after_success_records_the_planner_to_the_end_of_its_path(tmp_path, state_demos):
+    """PickCube-v1's planner reaches the goal region still moving; the kept steps slow it down there."""
+    cut = next(DemoBuffer.open(state_demos).episodes())  # seed 0, ends at the first success
+    res = collect(tmp_path / "full", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=1,
+                  keep_after_success=True, progress=False)
+    assert res.buffer.metadata.keep_after_success and res.buffer.metadata.seeds == [0]
+    full = next(res.buffer.episodes())
+    T = cut[ACTION_KEY].shape[0]
+    assert full[ACTION_KEY].shape[0] > T
+    torch.testing.assert_close(full[ACTION_KEY][:T], cut[ACTION_KEY])  # the same replay, continued
+    assert full["next", "success"][T - 1].item() and full["next", "terminated"][-1].item()
+    arm = full[ACTION_KEY][:, :6].abs().amax(-1)
+    assert arm[-1] < arm[T - 1]  # still moving at the first success, slower at the end
+    with pytest.raises(BufferMismatchError, match="keep_after_success=True"):
+        collect(tmp_path / "full", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=2, progress=False)
+    with pytest.raises(ValueError, match="motion planner"):
+        collect(tmp_path / "s", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=1, policy="scripted",
+                keep_after_success=True, progress=False)

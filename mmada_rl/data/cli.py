@@ -40,6 +40,7 @@ def _run_collect(args: argparse.Namespace) -> int:
             episodes=args.episodes,
             policy=args.policy,
             only_success=args.only_success,
+            keep_after_success=args.keep_after_success,
             seed=args.seed,
             max_attempts=args.max_attempts,
         )
@@ -95,6 +96,9 @@ def add_parser(sub) -> None:
                    "expert (PickCube, PushCube, PullCube; pd_ee_delta_pose); random: uniform actions (default: %(default)s).")
     p.add_argument("--only-success", default=None, action=argparse.BooleanOptionalAction,
                    help="keep only episodes reaching the task's success (default: yes for planner and scripted, no for random).")
+    p.add_argument("--keep-after-success", action="store_true",
+                   help="planner only: record each demonstration to the end of the planner's path (the arm slowing "
+                   "down to a stop at the goal) instead of ending it at the first success.")
     p.add_argument("--seed", type=int, default=0, help="first env seed of a new buffer (default: %(default)s).")
     p.add_argument("--max-attempts", type=int, default=None, help="give up after this many attempts (default: 3 × missing episodes + 10).")
     p.set_defaults(func=_run_collect)

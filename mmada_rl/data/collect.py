@@ -7,7 +7,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
-from mmada_rl.data.buffer import DemoBuffer
+from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.sources import PlannerSource, PolicySource
 from mmada_rl.envs.maniskill import EnvConfig
@@ -33,12 +33,14 @@ class CollectResult:
         return self.successes / self.attempts if self.attempts else float("nan")
 
 
-def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None):
+def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None, keep_after_success: bool = False):
     """The episode source named ``policy`` (``"planner"``, ``"scripted"``, ``"random"``), or a TorchRL policy object."""
+    if keep_after_success and (policy != "planner" or torchrl_policy is not None):
+        raise ValueError("keep_after_success applies to the motion planner's demonstrations (--policy planner) only.")
     if torchrl_policy is not None:
         return PolicySource(cfg, torchrl_policy)
     if policy == "planner":
-        return PlannerSource(cfg)
+        return PlannerSource(cfg, keep_after_success)
     if policy == "scripted":
         from mmada_rl.data.scripted import ScriptedSource
 
@@ -56,6 +58,7 @@ def collect(
     policy: str = "planner",
     torchrl_policy=None,
     only_success: bool | None = None,
+    keep_after_success: bool = False,
     seed: int = 0,
     max_attempts: int | None = None,
     progress: bool = True,
@@ -73,13 +76,15 @@ def collect(
         torchrl_policy: any TorchRL policy module; overrides ``policy``.
         only_success: keep only episodes that reach success (default: True for
             the planner and scripted experts, False otherwise).
+        keep_after_success: planner episodes run to the end of the planner's
+            path instead of ending at the first success (see :class:`PlannerSource`).
         seed: first env seed of a new buffer (a resumed one continues from its ``next_seed``).
         max_attempts: stop after this many tries in this run (default: 3 × missing episodes + 10).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be positive, got {episodes}.")
     only_success = (policy in ("planner", "scripted") and torchrl_policy is None) if only_success is None else only_success
-    source = make_source(cfg, policy, torchrl_policy)
+    source = make_source(cfg, policy, torchrl_policy, keep_after_success)
     meta = BufferMetadata(
         task=cfg.task,
         control_mode=cfg.control_mode,
@@ -90,9 +95,16 @@ def collect(
         reward=cfg.reward,
         max_episode_steps=cfg.episode_steps,
         source=source.name,
+        keep_after_success=bool(keep_after_success),
         next_seed=seed,
     )
     buffer = DemoBuffer.open_or_create(out, meta, capacity=episodes * (cfg.episode_steps or 200))
+    if buffer.metadata.keep_after_success != meta.keep_after_success:
+        source.close()
+        raise BufferMismatchError(
+            f"{out} holds episodes recorded with keep_after_success={buffer.metadata.keep_after_success}; "
+            f"resume it with the same setting or collect into another directory."
+        )
     missing = episodes - buffer.metadata.num_episodes
     max_attempts = max_attempts if max_attempts is not None else 3 * max(missing, 0) + 10
     instruction = task_spec(cfg.task).instruction

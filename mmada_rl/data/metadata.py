@@ -51,6 +51,8 @@ class BufferMetadata:
         reward: ``"dense"`` or ``"sparse"``.
         max_episode_steps: episode length limit used while recording.
         source: ``"planner"``, ``"random"``, ``"scripted"``, ``"policy"`` or ``"h5"``.
+        keep_after_success: planner episodes run past their first success to the
+            end of the planner's path (else they end at the first success).
         capacity: number of transitions the storage was allocated for.
         instructions: instruction strings; transitions store an index into this list.
         num_episodes, num_transitions: committed content.
@@ -70,6 +72,7 @@ class BufferMetadata:
     reward: str = "dense"
     max_episode_steps: int | None = None
     source: str = "planner"
+    keep_after_success: bool = False
     capacity: int = 0
     instructions: list[str] = field(default_factory=list)
     num_episodes: int = 0

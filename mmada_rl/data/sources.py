@@ -70,10 +70,16 @@ class ActionReplayer:
     with ManiSkill's own closed-loop converter
     (``mani_skill.trajectory.utils.actions.conversion.from_pd_joint_pos``), which
     tracks the source env's joint targets in the target controller.
+
+    Args:
+        cfg: the recording env.
+        keep_after_success: keep the steps after the first success (the rest of
+            the replayed actions, up to ``cfg``'s episode length) instead of
+            ending the episode at it.
     """
 
-    def __init__(self, cfg: EnvConfig):
-        self.cfg = cfg
+    def __init__(self, cfg: EnvConfig, keep_after_success: bool = False):
+        self.cfg, self.keep_after_success = cfg, bool(keep_after_success)
         # the recorder runs past cfg's limit so over-long conversions are seen, then dropped
         limit = 4 * (cfg.episode_steps or 200)
         self.recorder = StepRecorder(make_gym_env(EnvConfig(**{**cfg.to_dict(), "max_episode_steps": limit})))
@@ -131,6 +137,8 @@ class ActionReplayer:
         limit = self.cfg.episode_steps
         if limit is not None and stop > limit:
             return Attempt(None, True, f"success only after {stop} steps, beyond max_episode_steps={limit}")
+        if self.keep_after_success:
+            stop = len(rec) if limit is None else min(len(rec), limit)
         return Attempt(rec.episode(stop), True)
 
     def close(self) -> None:
@@ -140,13 +148,19 @@ class ActionReplayer:
 
 
 class PlannerSource:
-    """Demonstrations from ManiSkill's motion-planning solutions, recorded in ``cfg.control_mode``."""
+    """Demonstrations from ManiSkill's motion-planning solutions, recorded in ``cfg.control_mode``.
+
+    Episodes end at the first success, or with ``keep_after_success`` at the end
+    of the planner's path: a pick-and-place planner reaches the success region
+    while still moving and only then slows down to a stop at the goal, so
+    episodes cut at the first success never show the arm stopping there.
+    """
 
     name = "planner"
 
-    def __init__(self, cfg: EnvConfig):
+    def __init__(self, cfg: EnvConfig, keep_after_success: bool = False):
         self.solve = planner_function(cfg.task)
-        self.replayer = ActionReplayer(cfg)
+        self.replayer = ActionReplayer(cfg, keep_after_success)
 
     @property
     def action_dim(self) -> int:
