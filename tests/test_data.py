@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -29,6 +30,7 @@ from mmada_rl.keys import (
     GOAL_IS_CLIPPED_KEY,
     IMAGE_KEY,
     INSTRUCTION_KEY,
+    STATE_KEY,
     STEP_KEY,
 )
 
@@ -342,3 +344,30 @@ def test_keep_after_success_records_the_planner_to_the_end_of_its_path(tmp_path,
     with pytest.raises(ValueError, match="motion planner"):
         collect(tmp_path / "s", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=1, policy="scripted",
                 keep_after_success=True, progress=False)
+
+
+def test_action_noise_executes_noisy_actions_and_records_the_exact_ones(tmp_path):
+    """DART: the env moves by the noisy action, the demonstration keeps the expert's label."""
+    from mmada_rl.data.recording import StepRecorder
+    from mmada_rl.data.sources import NoisyExecution
+    from mmada_rl.envs.maniskill import make_gym_env
+
+    def tcp_after_three_still_steps(std):
+        rec = StepRecorder(NoisyExecution(make_gym_env(EnvConfig(task="PickCube-v1", obs_mode="state")), std, dims=6))
+        rec.reset(seed=3)
+        still = np.zeros(7, dtype=np.float32)
+        for _ in range(3):
+            rec.step(still)
+        out = rec.episode()
+        rec.close()
+        assert torch.equal(out[ACTION_KEY], torch.zeros(3, 7))  # the label, not what was executed
+        return out["next", STATE_KEY][-1, 19:22]  # TCP position
+
+    exact, noisy, again = tcp_after_three_still_steps(0.0), tcp_after_three_still_steps(0.1), tcp_after_three_still_steps(0.1)
+    assert (noisy - exact).norm() > 1e-3  # the arm moved although every label says "stay"
+    torch.testing.assert_close(noisy, again)  # noise reseeded from the episode seed
+    res = collect(tmp_path / "dart", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=1, action_noise=0.05,
+                  progress=False)
+    assert res.new_episodes == 1 and res.buffer.metadata.action_noise == 0.05
+    with pytest.raises(BufferMismatchError, match="action_noise=0.05"):
+        collect(tmp_path / "dart", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=2, progress=False)

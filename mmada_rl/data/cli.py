@@ -41,6 +41,7 @@ def _run_collect(args: argparse.Namespace) -> int:
             policy=args.policy,
             only_success=args.only_success,
             keep_after_success=args.keep_after_success,
+            action_noise=args.action_noise,
             seed=args.seed,
             max_attempts=args.max_attempts,
         )
@@ -99,6 +100,10 @@ def add_parser(sub) -> None:
     p.add_argument("--keep-after-success", action="store_true",
                    help="planner only: record each demonstration to the end of the planner's path (the arm slowing "
                    "down to a stop at the goal) instead of ending it at the first success.")
+    p.add_argument("--action-noise", type=float, default=0.0, metavar="STD",
+                   help="planner only: execute every action with Gaussian noise of this std on the arm (normalised "
+                   "units) and record the exact one; the closed-loop conversion steers back at the next step, so the "
+                   "demonstrations show recoveries (DART; default: %(default)s, no noise).")
     p.add_argument("--seed", type=int, default=0, help="first env seed of a new buffer (default: %(default)s).")
     p.add_argument("--max-attempts", type=int, default=None, help="give up after this many attempts (default: 3 × missing episodes + 10).")
     p.set_defaults(func=_run_collect)

@@ -33,14 +33,16 @@ class CollectResult:
         return self.successes / self.attempts if self.attempts else float("nan")
 
 
-def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None, keep_after_success: bool = False):
+def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None, keep_after_success: bool = False,
+                action_noise: float = 0.0):
     """The episode source named ``policy`` (``"planner"``, ``"scripted"``, ``"random"``), or a TorchRL policy object."""
-    if keep_after_success and (policy != "planner" or torchrl_policy is not None):
-        raise ValueError("keep_after_success applies to the motion planner's demonstrations (--policy planner) only.")
+    if (keep_after_success or action_noise) and (policy != "planner" or torchrl_policy is not None):
+        raise ValueError("keep_after_success and action_noise apply to the motion planner's demonstrations "
+                         "(--policy planner) only.")
     if torchrl_policy is not None:
         return PolicySource(cfg, torchrl_policy)
     if policy == "planner":
-        return PlannerSource(cfg, keep_after_success)
+        return PlannerSource(cfg, keep_after_success, action_noise)
     if policy == "scripted":
         from mmada_rl.data.scripted import ScriptedSource
 
@@ -59,6 +61,7 @@ def collect(
     torchrl_policy=None,
     only_success: bool | None = None,
     keep_after_success: bool = False,
+    action_noise: float = 0.0,
     seed: int = 0,
     max_attempts: int | None = None,
     progress: bool = True,
@@ -78,13 +81,15 @@ def collect(
             the planner and scripted experts, False otherwise).
         keep_after_success: planner episodes run to the end of the planner's
             path instead of ending at the first success (see :class:`PlannerSource`).
+        action_noise: planner episodes execute their actions with Gaussian noise of
+            this std on the arm (DART) and store the exact ones (see :class:`NoisyExecution`).
         seed: first env seed of a new buffer (a resumed one continues from its ``next_seed``).
         max_attempts: stop after this many tries in this run (default: 3 × missing episodes + 10).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be positive, got {episodes}.")
     only_success = (policy in ("planner", "scripted") and torchrl_policy is None) if only_success is None else only_success
-    source = make_source(cfg, policy, torchrl_policy, keep_after_success)
+    source = make_source(cfg, policy, torchrl_policy, keep_after_success, action_noise)
     meta = BufferMetadata(
         task=cfg.task,
         control_mode=cfg.control_mode,
@@ -96,15 +101,16 @@ def collect(
         max_episode_steps=cfg.episode_steps,
         source=source.name,
         keep_after_success=bool(keep_after_success),
+        action_noise=float(action_noise),
         next_seed=seed,
     )
     buffer = DemoBuffer.open_or_create(out, meta, capacity=episodes * (cfg.episode_steps or 200))
-    if buffer.metadata.keep_after_success != meta.keep_after_success:
+    recorded = {k: getattr(buffer.metadata, k) for k in ("keep_after_success", "action_noise")}
+    if recorded != {k: getattr(meta, k) for k in recorded}:
         source.close()
-        raise BufferMismatchError(
-            f"{out} holds episodes recorded with keep_after_success={buffer.metadata.keep_after_success}; "
-            f"resume it with the same setting or collect into another directory."
-        )
+        settings = ", ".join(f"{k}={v}" for k, v in recorded.items())
+        raise BufferMismatchError(f"{out} holds episodes recorded with {settings}; resume it with the same "
+                                  "settings or collect into another directory.")
     missing = episodes - buffer.metadata.num_episodes
     max_attempts = max_attempts if max_attempts is not None else 3 * max(missing, 0) + 10
     instruction = task_spec(cfg.task).instruction

@@ -53,6 +53,7 @@ class BufferMetadata:
         source: ``"planner"``, ``"random"``, ``"scripted"``, ``"policy"`` or ``"h5"``.
         keep_after_success: planner episodes run past their first success to the
             end of the planner's path (else they end at the first success).
+        action_noise: std of the noise planner episodes were executed with (DART; 0: none).
         capacity: number of transitions the storage was allocated for.
         instructions: instruction strings; transitions store an index into this list.
         num_episodes, num_transitions: committed content.
@@ -73,6 +74,7 @@ class BufferMetadata:
     max_episode_steps: int | None = None
     source: str = "planner"
     keep_after_success: bool = False
+    action_noise: float = 0.0
     capacity: int = 0
     instructions: list[str] = field(default_factory=list)
     num_episodes: int = 0

@@ -48,6 +48,39 @@ class _ActionLog(gym.Wrapper):
         return self.env.step(action)
 
 
+class NoisyExecution(gym.Wrapper):
+    """Executes each action plus Gaussian noise on its first ``dims`` entries (DART's noise injection).
+
+    Placed under the :class:`StepRecorder`, which keeps the action as given: the
+    demonstration stores the expert's label while the env moves by the noisy
+    action. With the planners' closed-loop conversion the next label steers back
+    toward the planned path, so the demonstrations show recoveries from states
+    slightly off it (Laskey et al., 2017, "DART: Noise Injection for Robust
+    Imitation Learning"). The noise is reseeded from each reset's seed, so an
+    episode is reproducible.
+
+    Args:
+        env: the recording env (normalised actions in ``[-1, 1]``).
+        std: noise standard deviation, in normalised action units.
+        dims: leading action entries that get noise (the arm; the gripper is left exact).
+    """
+
+    def __init__(self, env: gym.Env, std: float, dims: int):
+        super().__init__(env)
+        self.std, self.dims = float(std), int(dims)
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, *, seed=None, **kwargs):
+        if seed is not None:
+            self.rng = np.random.default_rng([int(seed), 0xDA27])
+        return self.env.reset(seed=seed, **kwargs)
+
+    def step(self, action):
+        noisy = np.array(action.cpu() if hasattr(action, "cpu") else action, dtype=np.float32).reshape(-1)
+        noisy[: self.dims] += self.rng.normal(0.0, self.std, self.dims).astype(np.float32)
+        return self.env.step(np.clip(noisy, -1.0, 1.0))
+
+
 def planner_function(task: str) -> Callable:
     """ManiSkill's motion-planning solution for ``task``; a clear error where there is none."""
     name = task_spec(task).planner
@@ -76,13 +109,20 @@ class ActionReplayer:
         keep_after_success: keep the steps after the first success (the rest of
             the replayed actions, up to ``cfg``'s episode length) instead of
             ending the episode at it.
+        action_noise: execute every action with Gaussian noise of this standard
+            deviation on its arm entries (:class:`NoisyExecution`; 0: exact).
     """
 
-    def __init__(self, cfg: EnvConfig, keep_after_success: bool = False):
+    def __init__(self, cfg: EnvConfig, keep_after_success: bool = False, action_noise: float = 0.0):
+        if action_noise < 0:
+            raise ValueError(f"action_noise must be >= 0, got {action_noise!r}.")
         self.cfg, self.keep_after_success = cfg, bool(keep_after_success)
         # the recorder runs past cfg's limit so over-long conversions are seen, then dropped
         limit = 4 * (cfg.episode_steps or 200)
-        self.recorder = StepRecorder(make_gym_env(EnvConfig(**{**cfg.to_dict(), "max_episode_steps": limit})))
+        env = make_gym_env(EnvConfig(**{**cfg.to_dict(), "max_episode_steps": limit}))
+        if action_noise > 0:
+            env = NoisyExecution(env, action_noise, dims=env.action_space.shape[0] - 1)  # all but the gripper
+        self.recorder = StepRecorder(env)
         self._source_envs: dict[str, gym.Env] = {}
 
     def source_env(self, control_mode: str) -> gym.Env:
@@ -154,13 +194,15 @@ class PlannerSource:
     of the planner's path: a pick-and-place planner reaches the success region
     while still moving and only then slows down to a stop at the goal, so
     episodes cut at the first success never show the arm stopping there.
+    ``action_noise`` executes the converted actions with noise (DART, see
+    :class:`NoisyExecution`) and records the exact ones.
     """
 
     name = "planner"
 
-    def __init__(self, cfg: EnvConfig, keep_after_success: bool = False):
+    def __init__(self, cfg: EnvConfig, keep_after_success: bool = False, action_noise: float = 0.0):
         self.solve = planner_function(cfg.task)
-        self.replayer = ActionReplayer(cfg, keep_after_success)
+        self.replayer = ActionReplayer(cfg, keep_after_success, action_noise)
 
     @property
     def action_dim(self) -> int:
