@@ -295,6 +295,30 @@ def test_demo_online_ratio_holds_in_sampled_batches(model, pick_demos):
     assert batch.shape == (8,) and bool(batch[IS_DEMO_KEY].all())
 
 
+def test_mixed_batches_carry_the_images_of_a_policy_with_its_own_cnn(model, pick_demos):
+    """With ``visual_encoder_channels`` every row, online or demonstration, brings the image its CNN reads."""
+    from mmada_rl.data import DemoBuffer
+    from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
+    from mmada_rl.policy import MMaDAConfig, Tokenizers
+
+    utils = recipe_utils()
+    overrides = {"cross_attention_to_visual": True, "visual_encoder_channels": [8, 16, 32]}
+    config = MMaDAConfig(**{**model.config.__dict__, "denoiser_overrides": overrides})
+    seeing = MMaDAModel(config, Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer,
+                                           model.proprio_tokenizer))
+    cfg = OmegaConf.create({"seed": 0, "demos": {"ratio": 0.25}, "replay_buffer": {"batch_size": 8, "capacity": 64}})
+    online = utils.make_online_buffer(cfg)
+    L, K, size = seeing.layout.length, seeing.config.chunk_size, seeing.image_size
+    online.extend(TensorDict({SEQUENCE_KEY: torch.zeros(20, L, dtype=torch.long), ACTION_IS_PAD_KEY: torch.zeros(20, K, dtype=torch.bool),
+                              ADVANTAGE_KEY: torch.randn(20),
+                              VISUAL_FEATURES_KEY: torch.randint(0, 255, (20, 3, size, size), dtype=torch.uint8)}, [20]))
+    batch = utils.mixed_batch(seeing, online.sample(), utils.make_demo_windows(cfg, DemoBuffer.open(pick_demos), seeing))
+    assert batch[VISUAL_FEATURES_KEY].shape == (8, 3, size, size)
+    loss = RewardWeightedDiffusionLoss(seeing.denoiser)(batch)
+    loss["loss_action"].backward()
+    assert seeing.denoiser.visual_encoder.cnn[0].weight.grad.abs().sum() > 0
+
+
 # -- the recipe as users run it -------------------------------------------------------------------
 COMMON = ["eval.episodes=1", "eval.max_episode_steps=10", "env.max_episode_steps=10", "collector.total_env_steps=30",
           "collector.decisions_per_batch=2",

@@ -276,6 +276,8 @@ def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) 
     takes the same updates without learning from the online data).
     """
     keys = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY]
+    if model.denoiser.config.encodes_images:
+        keys.append(VISUAL_FEATURES_KEY)  # the observation images the denoiser's CNN reads
     parts = [] if online is None else [online.select(*keys).set(IS_DEMO_KEY, torch.zeros(online.shape[0], dtype=torch.bool))]
     if demo_windows is not None:
         rows = model.loss_inputs(demo_windows.sample())
