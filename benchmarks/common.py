@@ -41,3 +41,43 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def maniskill_env(env):
+    """The ManiSkill task (``BaseEnv``) under a TorchRL env built by :func:`mmada_rl.envs.make_env`."""
+    while not hasattr(env, "_env"):
+        env = env.base_env
+    return env._env.unwrapped
+
+
+def probed_episode(penv, seed: int, max_decisions: int, probe) -> tuple[list, bool]:
+    """One greedy evaluation episode from ``reset(seed=seed)``; ``probe(task)`` reads the simulator
+    (the ManiSkill task) before every decision. Returns the probes and whether the task succeeded."""
+    import torch
+    from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+    task = maniskill_env(penv.env)
+    td = penv.env.reset(seed=seed)
+    probes, success = [], False
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        for _ in range(max_decisions):
+            probes.append(probe(task))
+            td = penv.env.step(penv.policy(td))
+            success = success or bool(td.get(("next", "success")).any())
+            if td.get(("next", "done")).any():
+                break
+            td = step_mdp(td)
+    return probes, success
+
+
+def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None):
+    """The policy of ``checkpoint`` (MMaDA-VLA or baseline) in its evaluation env on ``task``:
+    ``(penv, max_decisions)``, as ``mmada-rl eval`` runs it."""
+    from mmada_rl.evaluation import eval_env_config, load_actor
+    from mmada_rl.policy import make_policy_env
+
+    actor = load_actor(checkpoint)
+    actor.eval()
+    cfg = eval_env_config(actor, task, max_episode_steps=max_episode_steps)
+    penv = make_policy_env(cfg, actor)
+    return penv, -(-cfg.episode_steps // penv.actor.execute_steps) + 1

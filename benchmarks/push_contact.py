@@ -22,40 +22,24 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, eval_policy_env, markdown_table, probed_episode, write_results  # noqa: E402
 
 TASK = "PushCube-v1"
 DOWN_CM = 1.5  # the TCP counts as "down" below this height above the cube's centre
 
 
-def maniskill_env(env):
-    """The ManiSkill task (``BaseEnv``) under a TorchRL env built by :func:`mmada_rl.envs.make_env`."""
-    while not hasattr(env, "_env"):
-        env = env.base_env
-    return env._env.unwrapped
-
-
-def rollout(penv, task, seed: int, max_decisions: int) -> dict:
-    from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
-
-    td = penv.env.reset(seed=seed)
-    down, success = None, False
-    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        for _ in range(max_decisions):
-            offset = 100 * (task.agent.tcp.pose.p - task.obj.pose.p).reshape(-1)[:3]
-            if down is None and float(offset[2]) < DOWN_CM:
-                down = [round(float(offset[0]), 2), round(float(offset[1]), 2)]
-            td = penv.env.step(penv.policy(td))
-            success = success or bool(td.get(("next", "success")).any())
-            if td.get(("next", "done")).any():
-                break
-            td = step_mdp(td)
+def rollout(penv, seed: int, max_decisions: int) -> dict:
+    """One episode: the TCP's (dx, dy) from the cube at the first decision it is down at the cube's height."""
+    offsets, success = probed_episode(
+        penv, seed, max_decisions, lambda task: 100 * (task.agent.tcp.pose.p - task.obj.pose.p).reshape(-1)[:3])
+    down = next(([round(float(o[0]), 2), round(float(o[1]), 2)] for o in offsets if float(o[2]) < DOWN_CM), None)
     return {"seed": seed, "success": success, "down_dx_dy_cm": down}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", required=True, help="PushCube-v1 pretraining run, checkpoint or saved model directory")
+    parser.add_argument("--checkpoint", required=True, help="PushCube-v1 policy: a pretraining or imitation run, "
+                        "checkpoint or saved model directory")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's own length")
     parser.add_argument("--threads", type=int, default=1)
@@ -66,19 +50,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--episodes must be >= 1")
     torch.set_num_threads(args.threads)
 
-    from mmada_rl.envs.maniskill import EnvConfig
-    from mmada_rl.evaluation import eval_seeds, resolve_model_dir
-    from mmada_rl.policy import MMaDAActor, MMaDAModel, make_policy_env
+    from mmada_rl.evaluation import eval_seeds
 
-    model = MMaDAModel.load(resolve_model_dir(args.checkpoint))
-    model.eval()
-    cfg = EnvConfig(task=TASK, image_size=model.image_size, ignore_terminations=True, max_episode_steps=args.max_episode_steps)
-    penv = make_policy_env(cfg, MMaDAActor(model))
-    task = maniskill_env(penv.env)
-    max_decisions = -(-cfg.episode_steps // model.config.chunk_size) + 1
+    penv, max_decisions = eval_policy_env(args.checkpoint, TASK, args.max_episode_steps)
     episodes = []
     for seed in eval_seeds(args.episodes):
-        episodes.append(rollout(penv, task, seed, max_decisions))
+        episodes.append(rollout(penv, seed, max_decisions))
         print(episodes[-1], flush=True)
     penv.env.close()
 

@@ -45,7 +45,8 @@ from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.model import MODEL_CONFIG, MMaDAModel
 
-__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "eval_seeds", "evaluate", "resolve_model_dir", "wilson_interval"]
+__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "eval_env_config", "eval_seeds", "evaluate", "load_actor",
+           "resolve_model_dir", "wilson_interval"]
 
 #: First evaluation seed; training and demonstration seeds count up from 0.
 EVAL_SEED_BASE = 1_000_000
@@ -157,14 +158,13 @@ class EvalResult:
         return "\n".join(lines)
 
 
-def _load(model: MMaDAModel | TensorDictModuleBase | str | Path, device: str) -> MMaDAModel | TensorDictModuleBase:
-    """An :class:`MMaDAModel` or a chunk actor, loaded when given as a directory."""
-    if isinstance(model, (MMaDAModel, TensorDictModuleBase)):
-        return model
-    directory = resolve_model_dir(model)
-    if (directory / MODEL_CONFIG).is_file():
-        return MMaDAModel.load(directory, device=device)
-    return load_policy(directory, device=device)
+def load_actor(model: MMaDAModel | TensorDictModuleBase | str | Path, device: str = "cpu") -> TensorDictModuleBase:
+    """The chunk actor of a policy: an :class:`MMaDAActor` for an MMaDA-VLA model, the
+    baseline itself otherwise; loaded first when given as a run, checkpoint or model directory."""
+    if not isinstance(model, (MMaDAModel, TensorDictModuleBase)):
+        directory = resolve_model_dir(model)
+        model = MMaDAModel.load(directory, device=device) if (directory / MODEL_CONFIG).is_file() else load_policy(directory, device=device)
+    return MMaDAActor(model) if isinstance(model, MMaDAModel) else model
 
 
 def _image_size(actor) -> int | None:
@@ -174,7 +174,10 @@ def _image_size(actor) -> int | None:
     return getattr(actor, "image_size", None)
 
 
-def _env_config(policy_size: int | None, task: str, image_size: int | None, obs_mode: str = "rgb", **kwargs) -> EnvConfig:
+def eval_env_config(actor: TensorDictModuleBase, task: str, image_size: int | None = None, **kwargs) -> EnvConfig:
+    """The evaluation env of ``actor`` on ``task``: its observation mode and image size, episodes
+    running past success (``success_once`` and ``success_at_end``); ``kwargs`` go to :class:`EnvConfig`."""
+    policy_size, obs_mode = _image_size(actor), getattr(actor, "obs_mode", "rgb")  # "state": a reference policy
     if image_size is not None and policy_size is not None and image_size != policy_size:
         raise ValueError(
             f"env image_size={image_size} but the policy's image tokenizer / encoder was fitted on "
@@ -265,10 +268,8 @@ def evaluate(
     """
     seeds = eval_seeds(episodes, seed_offset)
     EnvConfig(task=task)  # an unknown task fails before the model loads
-    loaded = _load(model, device)
-    actor = MMaDAActor(loaded) if isinstance(loaded, MMaDAModel) else loaded
-    cfg = _env_config(_image_size(actor), task, image_size, obs_mode=getattr(actor, "obs_mode", "rgb"),  # "state": an RL reference
-                      control_mode=control_mode, max_episode_steps=max_episode_steps)
+    actor = load_actor(model, device)
+    cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
     if sample_temperature is not None and (mmada is None or not sample_temperature > 0):
         raise ValueError("sample_temperature needs an MMaDA-VLA policy and a value > 0 "

@@ -159,3 +159,20 @@ def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_r
     assert groups["success"]["episodes"] + groups["failure"]["episodes"] == 2
     assert "median abs(dy) (cm)" in (tmp_path / "push_contact.md").read_text()
     assert (tmp_path / "push_contact.png").stat().st_size > 0
+
+
+def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, tmp_path):
+    spec = importlib.util.spec_from_file_location("pick_progress", Path(__file__).parents[1] / "benchmarks" / "pick_progress.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
+                       "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "pick_progress.json").read_text())
+    assert [e["seed"] for e in result["episodes"]] == eval_seeds(2)
+    for e in result["episodes"]:
+        assert 1 <= len(e["distance_cm"]) <= 3  # 10 steps at k = 5: two decisions (one more probe at most)
+        assert e["final_cm"] == e["distance_cm"][-1] and 0 < e["final_cm"] < 100
+        assert (e["closest_cm"] is None) == (e["grasped_at_decision"] is None)  # distances after a grasp only
+    assert result["summary"]["episodes"] == 2 and result["summary"]["grasped"] <= 2
+    assert "median max height above goal (cm)" in (tmp_path / "pick_progress.md").read_text()
+    assert (tmp_path / "pick_progress.png").stat().st_size > 0
