@@ -81,3 +81,37 @@ def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None)
     cfg = eval_env_config(actor, task, max_episode_steps=max_episode_steps)
     penv = make_policy_env(cfg, actor)
     return penv, -(-cfg.episode_steps // penv.actor.execute_steps) + 1
+
+
+def probe_parser(description: str, name: str, task: str):
+    """The options every per-episode probe of a policy takes (``--checkpoint``, ``--episodes``, ...)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", required=True, help=f"{task} policy: a pretraining or imitation run, "
+                        "checkpoint or saved model directory")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's own length")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--name", default=name)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    return parser
+
+
+def run_probe(args, task: str, rollout, show=lambda episode: episode) -> tuple[list[dict], object]:
+    """``rollout(penv, seed, max_decisions) -> dict`` on each evaluation seed; returns the episodes and the
+    policy env (its env closed). ``show`` picks what is printed per episode."""
+    import torch
+
+    from mmada_rl.evaluation import eval_seeds
+
+    if args.episodes < 1:
+        raise SystemExit("--episodes must be >= 1")
+    torch.set_num_threads(args.threads)
+    penv, max_decisions = eval_policy_env(args.checkpoint, task, args.max_episode_steps)
+    episodes = []
+    for seed in eval_seeds(args.episodes):
+        episodes.append(rollout(penv, seed, max_decisions))
+        print(show(episodes[-1]), flush=True)
+    penv.env.close()
+    return episodes, penv

@@ -11,11 +11,17 @@ came to the goal, how far **above** the goal it went (a policy that does not
 stop keeps lifting past it) and where it ended. Works with any policy
 ``mmada-rl eval`` loads (MMaDA-VLA, BC, Diffusion Policy; RGB or state).
 
+With ``--demos DIR`` it also checks the open-loop fit where it matters: on the
+demonstrations' own states after the grasp, the first predicted action's
+vertical component against the demonstrated one, near the goal (cube within
+5 cm of it, where the planner slows down) and farther away. A policy that fits
+these well and still overshoots in closed loop fails from compounding errors,
+not from underfitting.
+
 Writes ``benchmarks/results/pick_progress.{json,md,png}`` (``--name`` renames them).
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 from pathlib import Path
@@ -23,7 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, eval_policy_env, markdown_table, probed_episode, write_results  # noqa: E402
+from common import markdown_table, probe_parser, probed_episode, run_probe, write_results  # noqa: E402
 
 TASK = "PickCube-v1"
 
@@ -47,28 +53,44 @@ def rollout(penv, seed: int, max_decisions: int) -> dict:
     }
 
 
+NEAR_CM = 5.0  # "near the goal" for the open-loop fit
+
+
+def demo_fit(actor, demos: Path) -> dict:
+    """Open-loop vertical-action error on the demonstrations' grasped states, near / far from the goal."""
+    from mmada_rl.data import DemoBuffer
+    from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, STATE_KEY
+
+    buffer = DemoBuffer.open(demos, task=TASK)
+    if buffer.metadata.obs_mode != "state":
+        raise ValueError(f"--demos needs demonstrations recorded with --obs-mode state (the cube's offset from the goal "
+                         f"is read from the state); {demos} holds {buffer.metadata.obs_mode!r} observations.")
+    rows = {"near": [], "far": []}
+    with torch.no_grad():
+        for episode in buffer.episodes():
+            obs = episode.exclude("next", ACTION_KEY)
+            predicted = actor(obs.clone()).get(ACTION_CHUNK_KEY)[:, 0, 2]  # (T,) first action, z
+            state, demonstrated = episode.get(STATE_KEY), episode.get(ACTION_KEY)[:, 2]
+            near = 100 * state[:, -3:].norm(dim=-1) < NEAR_CM  # PickCube's state ends with goal - cube
+            held = state[:, 18] > 0.5  # is_grasped
+            for name, mask in (("near", held & near), ("far", held & ~near)):
+                rows[name] += torch.stack([demonstrated[mask], predicted[mask]], -1).tolist()
+    out = {}
+    for name, pairs in rows.items():
+        t = torch.tensor(pairs).reshape(-1, 2)
+        out[name] = {"states": len(pairs), "demo_z_mean": round(float(t[:, 0].mean()), 4) if pairs else None,
+                     "predicted_z_mean": round(float(t[:, 1].mean()), 4) if pairs else None,
+                     "abs_error_z": round(float((t[:, 1] - t[:, 0]).abs().mean()), 4) if pairs else None}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", required=True, help="PickCube-v1 policy: a pretraining or imitation run, "
-                        "checkpoint or saved model directory")
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's own length")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--name", default="pick_progress")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser = probe_parser(__doc__, "pick_progress", TASK)
+    parser.add_argument("--demos", type=Path, default=None, help="also measure the open-loop fit on these "
+                        "PickCube-v1 demonstrations (state observations; for a policy that reads the state)")
     args = parser.parse_args(argv)
-    if args.episodes < 1:
-        parser.error("--episodes must be >= 1")
-    torch.set_num_threads(args.threads)
 
-    from mmada_rl.evaluation import eval_seeds
-
-    penv, max_decisions = eval_policy_env(args.checkpoint, TASK, args.max_episode_steps)
-    episodes = []
-    for seed in eval_seeds(args.episodes):
-        episodes.append(rollout(penv, seed, max_decisions))
-        print({k: v for k, v in episodes[-1].items() if k != "distance_cm"}, flush=True)
-    penv.env.close()
+    episodes, penv = run_probe(args, TASK, rollout, show=lambda e: {k: v for k, v in e.items() if k != "distance_cm"})
 
     held = [e for e in episodes if e["grasped_at_decision"] is not None]
     median = lambda key: statistics.median(e[key] for e in held) if held else None  # noqa: E731
@@ -76,6 +98,13 @@ def main(argv: list[str] | None = None) -> int:
                "median_closest_cm": median("closest_cm"), "median_max_above_goal_cm": median("max_above_goal_cm"),
                "median_final_cm": median("final_cm")}
     payload = {"checkpoint": str(args.checkpoint), "task": TASK, "summary": summary, "episodes": episodes}
+    fit_table = ""
+    if args.demos is not None:
+        payload["demo_fit"] = fit = demo_fit(penv.actor, args.demos)
+        fit_table = "\n\nOpen loop on the demonstrations' grasped states (`{}`), vertical action:\n\n{}\n".format(
+            args.demos, markdown_table(["cube–goal", "states", "demonstrated z (mean)", "predicted z (mean)", "mean abs error"],
+                                       [[f"< {NEAR_CM:g} cm" if k == "near" else f">= {NEAR_CM:g} cm", v["states"],
+                                         v["demo_z_mean"], v["predicted_z_mean"], v["abs_error_z"]] for k, v in fit.items()]))
     fmt = lambda v: "–" if v is None else f"{v:.1f}"  # noqa: E731
     table = markdown_table(
         ["episodes", "successes", "grasped", "median closest cube–goal (cm)", "median max height above goal (cm)",
@@ -84,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
           fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"])]])
     markdown = (f"# How far the policy gets on PickCube-v1: `{args.checkpoint}`\n\n"
                 f"{args.episodes} evaluation seeds, greedy decoding; distances after the first grasp, "
-                f"medians over the episodes that grasped.\n\n{table}\n")
+                f"medians over the episodes that grasped.\n\n{table}{fit_table}\n")
     write_results(args.name, payload, markdown, args.out)
     plot(episodes, args.out / f"{args.name}.png", str(args.checkpoint))
     print(markdown)

@@ -14,15 +14,13 @@ Writes ``benchmarks/results/push_contact.{json,md,png}`` (``--name`` renames the
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 from pathlib import Path
 
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, eval_policy_env, markdown_table, probed_episode, write_results  # noqa: E402
+from common import markdown_table, probe_parser, probed_episode, run_probe, write_results  # noqa: E402
 
 TASK = "PushCube-v1"
 DOWN_CM = 1.5  # the TCP counts as "down" below this height above the cube's centre
@@ -37,27 +35,10 @@ def rollout(penv, seed: int, max_decisions: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", required=True, help="PushCube-v1 policy: a pretraining or imitation run, "
-                        "checkpoint or saved model directory")
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's own length")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--name", default="push_contact")
-    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser = probe_parser(__doc__, "push_contact", TASK)
     args = parser.parse_args(argv)
-    if args.episodes < 1:
-        parser.error("--episodes must be >= 1")
-    torch.set_num_threads(args.threads)
 
-    from mmada_rl.evaluation import eval_seeds
-
-    penv, max_decisions = eval_policy_env(args.checkpoint, TASK, args.max_episode_steps)
-    episodes = []
-    for seed in eval_seeds(args.episodes):
-        episodes.append(rollout(penv, seed, max_decisions))
-        print(episodes[-1], flush=True)
-    penv.env.close()
+    episodes, _ = run_probe(args, TASK, rollout)
 
     def summary(group: list[dict]) -> dict:
         landed = [e["down_dx_dy_cm"] for e in group if e["down_dx_dy_cm"] is not None]

@@ -28,6 +28,14 @@ def model_dir(tmp_path_factory):
     return model.save(tmp_path_factory.mktemp("policy") / "model")
 
 
+def load_benchmark(name: str):
+    """A script of ``benchmarks/`` as a module (the scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_wilson_interval_matches_hand_computation():
     # 7/10, z = 1.96: centre (0.7 + 1.9208/10) / 1.38415 = 0.64449, half-width 0.24770
     low, high = wilson_interval(7, 10)
@@ -114,9 +122,7 @@ def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
 
 
 def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run, tmp_path):
-    spec = importlib.util.spec_from_file_location("seeds", Path(__file__).parents[1] / "benchmarks" / "seeds.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("seeds")
     # the toy run logged a 1-episode evaluation at its last step; evaluate it again into an eval.json
     model_dir = toy_pretrain_run / "checkpoints" / "step_00000006" / "model"  # what `mmada-rl eval` records
     evaluate(model_dir, "PickCube-v1", 1, max_episode_steps=10, out_dir=tmp_path / "e1", progress=False)
@@ -144,9 +150,7 @@ def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run,
 
 
 def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_run, tmp_path):
-    spec = importlib.util.spec_from_file_location("push_contact", Path(__file__).parents[1] / "benchmarks" / "push_contact.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("push_contact")
     # the toy PickCube-v1 policy run in PushCube-v1 (its smaller state is zero-padded): a real rollout, not a good one
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
                        "--out", str(tmp_path)]) == 0
@@ -162,9 +166,7 @@ def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_r
 
 
 def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, tmp_path):
-    spec = importlib.util.spec_from_file_location("pick_progress", Path(__file__).parents[1] / "benchmarks" / "pick_progress.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("pick_progress")
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
                        "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "pick_progress.json").read_text())
