@@ -60,6 +60,7 @@ def summarize(run: Path) -> dict:
         "execute_steps": int(config["eval"]["execute_steps"]),
         "skip_idle_start": bool(config.get("data", {}).get("skip_idle_start", False)),
         "skip_pauses": float(config.get("data", {}).get("skip_pauses", 0.0)),
+        "visual_encoder_channels": (config["model"].get("denoiser_overrides") or {}).get("visual_encoder_channels"),
         # from the run's own image tokenizer (it may come from tokenizers.dir, not this run's config)
         "image_foreground_weight": float(json.loads((ckpts[-1] / "model" / "tokenizers" / "image" / "config.json").read_text())
                                          ["config"].get("foreground_weight", 1.0)),
@@ -94,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
                   r["denoiser"], f"{r['steps']} / {r['planned_steps']}", f"{last_acc:.2f}"]
         options = ((" (no window in the leading hold)" if r["skip_idle_start"] else "")
                    + (f" (no window starting in a pause, {r['skip_pauses']:g})" if r["skip_pauses"] else "")
-                   + (f" (image foreground weight {r['image_foreground_weight']:g})" if r["image_foreground_weight"] != 1 else ""))
+                   + (f" (image foreground weight {r['image_foreground_weight']:g})" if r["image_foreground_weight"] != 1 else "")
+                   + (f" (cross-attention to CNN features {r['visual_encoder_channels']})" if r["visual_encoder_channels"] else ""))
         if r["per_task"]:
             rows += [[f"{task} (multi-task, {len(r['tasks'])} tasks){options}", *common, format_evaluations(evals)]
                      for task, evals in r["per_task"].items()]
@@ -118,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
                    + (", skip idle start" if r["skip_idle_start"] else "")
                    + (f", skip pauses {r['skip_pauses']:g}" if r["skip_pauses"] else "")
                    + (f", {r['planned_steps']} steps" if r["planned_steps"] != usual else "")
-                   + (f", image fg x{r['image_foreground_weight']:g}" if r["image_foreground_weight"] != 1 else ""))
+                   + (f", image fg x{r['image_foreground_weight']:g}" if r["image_foreground_weight"] != 1 else "")
+                   + (", CNN cross-attention" if r["visual_encoder_channels"] else ""))
         label = f"{name} {r['action_tokenizer']}{ablated}"
         if r["action_accuracy"]:
             steps, values = zip(*r["action_accuracy"])
