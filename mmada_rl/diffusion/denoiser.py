@@ -187,6 +187,10 @@ class MaskedDiffusionDenoiser(nn.Module):
         """Dimensions of one sample's ``visual`` input plus the batch: 4 for images, 3 for features."""
         return 4 if self.visual_encoder is not None else 3
 
+    def flat_visual(self, visual: torch.Tensor, batch: int = -1) -> torch.Tensor:
+        """``visual`` with its batch dimensions flattened to ``batch`` (features or images alike)."""
+        return visual.reshape(batch, *visual.shape[-(self.visual_ndim - 1):])
+
     @property
     def vocab_size(self) -> int:
         return self.layout.vocab.size
@@ -254,7 +258,7 @@ class MaskedDiffusionDenoiser(nn.Module):
         if noise_level.ndim:
             noise_level = noise_level.reshape(-1)
         if visual is not None:
-            visual = visual.reshape(-1, *visual.shape[-(self.visual_ndim - 1):])
+            visual = self.flat_visual(visual)
         hidden = self.encode(flat_ids, noise_level, visual)  # (B, L, D)
         if positions is None:
             positions = torch.arange(self.layout.length, device=ids.device)

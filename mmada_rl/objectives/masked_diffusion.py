@@ -211,7 +211,7 @@ class MaskedDiffusionLoss(LossModule):
         visual = None
         if self.cross_attention:
             visual = tensordict.get(keys.visual)
-            visual = visual.reshape(batch, *visual.shape[-(self.denoiser_network.module.visual_ndim - 1):])
+            visual = self.denoiser_network.module.flat_visual(visual, batch)
 
         scored = corrupted & self._sample_valid(tensordict, batch, device)[:, None]  # (B, L)
         is_pad = tensordict.get(keys.action_is_pad, None)

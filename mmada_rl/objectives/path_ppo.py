@@ -123,7 +123,7 @@ class PathPPOLoss(LossModule):
         visual = None
         if self.cross_attention:
             visual = tensordict.get(self.tensor_keys.visual)
-            visual = visual.reshape(path.shape[0], *visual.shape[-(self.denoiser_network.module.visual_ndim - 1):])
+            visual = self.denoiser_network.module.flat_visual(visual, path.shape[0])
         with self.denoiser_network_params.to_module(self.denoiser_network):
             new = path_log_prob(self.denoiser_network.module, path, visual, per_token=True)  # (B, N, T)
         old = path.log_probs  # (B, N, T), 0 where nothing was committed
