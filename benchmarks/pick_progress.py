@@ -44,7 +44,7 @@ def rollout(penv, seed: int, max_decisions: int) -> dict:
     probes, success = probed_episode(penv, seed, max_decisions, probe)
     grasped_at = next((i for i, (held, _) in enumerate(probes) if held), None)
     distance = [float(torch.tensor(o).norm()) for _, o in probes]
-    after = range(grasped_at or 0, len(probes)) if grasped_at is not None else range(0)
+    after = range(grasped_at, len(probes)) if grasped_at is not None else range(0)
     return {
         "seed": seed, "success": success, "grasped_at_decision": grasped_at,
         "closest_cm": round(min(distance[i] for i in after), 2) if after else None,
