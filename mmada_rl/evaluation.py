@@ -3,7 +3,8 @@
 Any chunk policy runs here: the MMaDA-VLA policy (an :class:`MMaDAModel`, its
 :class:`MMaDAActor`, or a directory saved by ``MMaDAModel.save``) and the
 imitation baselines of :mod:`mmada_rl.baselines` (a policy object, or a
-directory saved by its ``save``), or any actor that writes
+directory saved by its ``save``), the RL baselines' actors (a checkpoint of
+``recipes/baselines/online.py``, run one action per call), or any actor that writes
 ``("vla_action", "chunk")`` ``[*B, K, A]`` and ``"action"`` ``[*B, k, A]`` and has
 ``chunk_size``, ``action_dim``, ``execute_steps``, ``get_new_version`` and
 ``last_decode_seconds`` as :class:`MMaDAActor` does.
@@ -37,7 +38,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from tqdm.auto import tqdm
 
-from mmada_rl.baselines import POLICY_CONFIG, is_policy_dir, load_policy
+from mmada_rl.baselines import AGENT_CONFIG, POLICY_CONFIG, is_policy_dir, is_rl_agent_dir, load_policy, load_rl_actor
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
@@ -82,21 +83,21 @@ def wilson_interval(successes: int, trials: int, z: float = _Z95) -> Interval:
 
 
 def resolve_model_dir(path: str | Path) -> Path:
-    """The directory holding ``model.json`` (or a baseline's ``policy.json``): ``path`` itself, ``path/model``,
-    or, for a training run directory, its newest checkpoint's ``model``."""
+    """The directory holding ``model.json`` (or a baseline's ``policy.json`` or ``rl_agent.json``): ``path`` itself,
+    ``path/model``, or, for a training run directory, its newest checkpoint's ``model``."""
     from mmada_rl.training import latest_checkpoint
 
     path = Path(path)
     newest = latest_checkpoint(path)
     candidates = [path, path / "model"] + ([newest / "model"] if newest is not None else [])
     for candidate in candidates:
-        if (candidate / MODEL_CONFIG).is_file() or is_policy_dir(candidate):
+        if (candidate / MODEL_CONFIG).is_file() or is_policy_dir(candidate) or is_rl_agent_dir(candidate):
             return candidate
     raise FileNotFoundError(
         f"no MMaDA policy at {path}: expected {path / MODEL_CONFIG} or {path / 'model' / MODEL_CONFIG} "
         "(a directory written by MMaDAModel.save, a checkpoint directory holding one under model/, or a run "
         "directory with checkpoints/), "
-        f"or a baseline's {POLICY_CONFIG} there."
+        f"or a baseline's {POLICY_CONFIG} or {AGENT_CONFIG} there."
     )
 
 
@@ -160,10 +161,14 @@ class EvalResult:
 
 def load_actor(model: MMaDAModel | TensorDictModuleBase | str | Path, device: str = "cpu") -> TensorDictModuleBase:
     """The chunk actor of a policy: an :class:`MMaDAActor` for an MMaDA-VLA model, the
-    baseline itself otherwise; loaded first when given as a run, checkpoint or model directory."""
+    baseline itself otherwise (an RL baseline's actor as a one-step chunk policy); loaded
+    first when given as a run, checkpoint or model directory."""
     if not isinstance(model, (MMaDAModel, TensorDictModuleBase)):
         directory = resolve_model_dir(model)
-        model = MMaDAModel.load(directory, device=device) if (directory / MODEL_CONFIG).is_file() else load_policy(directory, device=device)
+        if (directory / MODEL_CONFIG).is_file():
+            model = MMaDAModel.load(directory, device=device)
+        else:
+            model = load_rl_actor(directory, device=device) if is_rl_agent_dir(directory) else load_policy(directory, device=device)
     return MMaDAActor(model) if isinstance(model, MMaDAModel) else model
 
 
@@ -402,8 +407,9 @@ def add_parser(sub) -> None:
     """Register ``mmada-rl eval``."""
     p = sub.add_parser("eval", help="evaluate a saved policy on a ManiSkill3 task (success rates with 95%% CIs)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="directory saved by MMaDAModel.save or by a baseline policy's save "
-                   "(recipes/baselines), or a checkpoint directory with one under model/.")
+    p.add_argument("--checkpoint", required=True, help="directory saved by MMaDAModel.save or by a baseline's save "
+                   "(recipes/baselines: BC, Diffusion Policy, and the RL baselines' actors), a checkpoint directory "
+                   "with one under model/, or a run directory (its newest checkpoint).")
     p.add_argument("--task", required=True, help="ManiSkill3 task id, e.g. PickCube-v1.")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes (default: %(default)s).")
     p.add_argument("--seed-offset", type=int, default=0, help=f"first env seed is {EVAL_SEED_BASE} + this (default: %(default)s).")

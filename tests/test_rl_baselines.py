@@ -14,7 +14,9 @@ from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from mmada_rl.baselines.rl import OneStepChunkActor, RLAgent, RLNetworkConfig, make_actor, make_qvalue, make_value
+from mmada_rl.baselines.rl import (OneStepChunkActor, RLAgent, RLNetworkConfig, is_rl_agent_dir, load_rl_actor, make_actor,
+                                   make_qvalue, make_value)
+from mmada_rl.evaluation import evaluate
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "baselines" / "online.py"
@@ -64,30 +66,48 @@ def test_one_step_chunk_actor_is_greedy_and_writes_a_chunk_of_one():
 def test_sac_loss_falls_and_the_agent_reloads(tmp_path):
     config = RLNetworkConfig(state_dim=10, hidden_sizes=(32, 32))
     torch.manual_seed(0)
+    stats = (torch.randn(10), torch.rand(10) + 0.5)
 
     def sac():
-        loss = SACLoss(make_actor(config, SPEC), make_qvalue(config), num_qvalue_nets=2, action_spec=SPEC)
+        actor = make_actor(config, SPEC, stats)
+        loss = SACLoss(actor, make_qvalue(config, stats), num_qvalue_nets=2, action_spec=SPEC)
         loss.make_value_estimator(gamma=0.9)
         SoftUpdate(loss, tau=0.005)
-        return loss
+        return loss, actor
 
-    loss, td = sac(), batch(config, 64)
+    (loss, actor), td = sac(), batch(config, 64)
     optimizer = torch.optim.Adam(loss.parameters(), lr=1e-3)
     first = None
     for _ in range(50):
-        q_loss = loss(td.clone())["loss_qvalue"]
-        first = float(q_loss.detach()) if first is None else first
+        losses = loss(td.clone())
+        step_loss = losses["loss_qvalue"] + losses["loss_actor"]
+        first = float(losses["loss_qvalue"].detach()) if first is None else first
         optimizer.zero_grad()
-        q_loss.backward()
+        step_loss.backward()
         optimizer.step()
-    assert float(q_loss.detach()) < 0.5 * first
-    RLAgent("sac", config, loss).save(tmp_path)
-    reloaded = sac()
+    assert float(losses["loss_qvalue"].detach()) < 0.5 * first
+    RLAgent("sac", config, loss, actor).save(tmp_path)
+    reloaded, _ = sac()
     RLAgent("sac", config, reloaded).load(tmp_path)
     for key, value in loss.state_dict().items():
         torch.testing.assert_close(reloaded.state_dict()[key], value)
     with pytest.raises(ValueError, match="holds a sac agent but algo=iql"):
         RLAgent("iql", config, reloaded).load(tmp_path)
+
+    # the actor alone, as evaluation loads it: the trained weights and the state moments, greedy actions equal
+    assert is_rl_agent_dir(tmp_path) and not is_rl_agent_dir(tmp_path / "nowhere")
+    evaluated = load_rl_actor(tmp_path)
+    assert (evaluated.obs_mode, evaluated.chunk_size, evaluated.action_dim) == ("state", 1, 7)
+    obs = batch(config, 16).exclude("action", "next")
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        expected = OneStepChunkActor(actor, "state")(obs.clone())["action"]
+        untrained = OneStepChunkActor(make_actor(config, SPEC, stats), "state")(obs.clone())["action"]
+        got = evaluated(obs.clone())["action"]
+    torch.testing.assert_close(got, expected)
+    assert not torch.allclose(untrained, expected)  # so the equality above is the loaded weights' doing
+    RLAgent("sac", config, loss).save(tmp_path / "loss_only")
+    with pytest.raises(FileNotFoundError, match="saved without its actor"):
+        load_rl_actor(tmp_path / "loss_only")
 
 
 def test_bad_network_config_fails_with_a_sentence():
@@ -144,6 +164,10 @@ def test_each_baseline_trains_evaluates_and_checkpoints(toy_runs, algo, observat
     if algo != "ppo":  # the online replay buffer travels with the checkpoint
         assert extra["replay_buffer"].shape == (64,)
     assert (run_dir / "logs" / "scalars" / "train" / "reward.csv").exists()
+    # what `mmada-rl eval --checkpoint RUN_DIR` runs: the newest checkpoint's actor, on the recipe's evaluation seed
+    result = evaluate(run_dir, "PickCube-v1", episodes=1, max_episode_steps=20, progress=False)
+    assert result.episodes == 1 and 1 <= result.episode_length <= 20
+    assert (result.success_once, result.success_at_end) == (history[-1]["success_once"], history[-1]["success_at_end"])
 
 
 @pytest.mark.parametrize("algo, checkpoint, message, eval_steps", [

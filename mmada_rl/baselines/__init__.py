@@ -8,7 +8,7 @@
 The reinforcement-learning baselines (PPO, SAC/RLPD, IQL on TorchRL's losses) build
 their networks with :mod:`mmada_rl.baselines.rl` (:func:`make_actor`,
 :func:`make_qvalue`, :func:`make_value`; :class:`OneStepChunkActor` lets
-``evaluate`` run them).
+``evaluate`` run them; :func:`load_rl_actor` rebuilds a checkpoint's actor).
 
 Both are TorchRL ``VLAWrapperBase`` actors writing ``("vla_action", "chunk")``
 and ``"action"`` like :class:`~mmada_rl.policy.MMaDAActor`, so
@@ -29,12 +29,15 @@ from mmada_rl.baselines.diffusion_policy import ChunkDiffusionBCLoss, DiffusionP
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder, RandomShift, random_shift
 from mmada_rl.baselines.normalization import ChunkNormalizer, NormalizationStats, StateStandardizer
 from mmada_rl.baselines.rl import (
+    ACTOR_WEIGHTS,
     AGENT_CONFIG,
     AGENT_WEIGHTS,
     ObservationTrunk,
     OneStepChunkActor,
     RLAgent,
     RLNetworkConfig,
+    is_rl_agent_dir,
+    load_rl_actor,
     make_actor,
     make_qvalue,
     make_value,
@@ -42,6 +45,7 @@ from mmada_rl.baselines.rl import (
 )
 
 __all__ = [
+    "ACTOR_WEIGHTS",
     "AGENT_CONFIG",
     "AGENT_WEIGHTS",
     "ALGOS",
@@ -66,7 +70,9 @@ __all__ = [
     "RandomShift",
     "StateStandardizer",
     "is_policy_dir",
+    "is_rl_agent_dir",
     "load_policy",
+    "load_rl_actor",
     "make_actor",
     "make_bc_loss",
     "make_loss",

@@ -34,7 +34,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModule, TensorDictModuleBase
 from torch import nn
-from torchrl.data import TensorSpec
+from torchrl.data import Bounded, TensorSpec
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
@@ -43,21 +43,26 @@ from mmada_rl.envs.maniskill import OBS_MODES
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
 
 __all__ = [
+    "ACTOR_WEIGHTS",
     "AGENT_CONFIG",
     "AGENT_WEIGHTS",
     "OneStepChunkActor",
     "ObservationTrunk",
     "RLAgent",
     "RLNetworkConfig",
+    "is_rl_agent_dir",
+    "load_rl_actor",
     "make_actor",
     "make_qvalue",
     "make_value",
     "observation_keys",
 ]
 
-#: Files of a saved :class:`RLAgent` (a checkpoint's ``model/`` directory).
+#: Files of a saved :class:`RLAgent` (a checkpoint's ``model/`` directory): the config, the whole loss
+#: module (what resuming needs) and the actor alone (what :func:`load_rl_actor` evaluates).
 AGENT_CONFIG = "rl_agent.json"
 AGENT_WEIGHTS = "rl_agent.pt"
+ACTOR_WEIGHTS = "rl_actor.pt"
 
 _ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "mish": nn.Mish, "gelu": nn.GELU}
 
@@ -282,31 +287,44 @@ class OneStepChunkActor(TensorDictModuleBase):
 
 
 class RLAgent(nn.Module):
-    """What a checkpoint's ``model/`` holds: the whole TorchRL loss module of one baseline.
+    """What a checkpoint's ``model/`` holds: the whole TorchRL loss module of one baseline, and its actor.
 
     The loss module owns the trained parameters (actor, the Q ensemble, V, target
     copies, SAC's temperature), so saving its state dict is what resuming needs.
-    Rebuild the same loss from the config, then :meth:`load` into it.
+    Rebuild the same loss from the config, then :meth:`load` into it. The actor is
+    also saved alone, with its action bounds, so that :func:`load_rl_actor` (and
+    ``mmada-rl eval --checkpoint``) can run it without the recipe that built the loss.
 
     Args:
         algo: ``"ppo"`` | ``"sac"`` | ``"iql"``.
         config: the networks' config.
         loss_module: the TorchRL loss (``ClipPPOLoss``, ``SACLoss``, ``IQLLoss``).
+        actor: the actor the loss trains (the ``ProbabilisticActor`` of :func:`make_actor`,
+            sharing its parameters); ``None`` saves the loss module only.
     """
 
-    def __init__(self, algo: str, config: RLNetworkConfig, loss_module: nn.Module) -> None:
+    def __init__(self, algo: str, config: RLNetworkConfig, loss_module: nn.Module,
+                 actor: ProbabilisticActor | None = None) -> None:
         super().__init__()
         self.algo, self.config, self.loss_module = algo, config, loss_module
+        self.actor = actor
 
     def save(self, directory: str | Path) -> Path:
-        """Write ``rl_agent.json`` (algo, network config) and ``rl_agent.pt`` (the loss module's state dict)."""
+        """Write ``rl_agent.json`` (algo, network config, action bounds), ``rl_agent.pt`` (the loss
+        module's state dict) and, with an actor, ``rl_actor.pt`` (its state dict)."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        tmp = directory / f".{AGENT_WEIGHTS}.tmp"
-        torch.save({k: v.detach().cpu() for k, v in self.loss_module.state_dict().items()}, tmp)
-        tmp.replace(directory / AGENT_WEIGHTS)
+        weights = {AGENT_WEIGHTS: self.loss_module}
         payload = {"algo": self.algo, "config": self.config.to_dict(),
                    "num_parameters": sum(p.numel() for p in self.loss_module.parameters())}
+        if self.actor is not None:
+            weights[ACTOR_WEIGHTS] = self.actor
+            box = self.actor.spec[ACTION_KEY].space
+            payload["action_low"], payload["action_high"] = box.low.tolist(), box.high.tolist()
+        for name, module in weights.items():
+            tmp = directory / f".{name}.tmp"
+            torch.save({k: v.detach().cpu() for k, v in module.state_dict().items()}, tmp)
+            tmp.replace(directory / name)
         tmp = directory / f".{AGENT_CONFIG}.tmp"
         tmp.write_text(json.dumps(payload, indent=2))
         tmp.replace(directory / AGENT_CONFIG)
@@ -314,14 +332,42 @@ class RLAgent(nn.Module):
 
     def load(self, directory: str | Path) -> None:
         """Load the weights saved in ``directory`` (same algo and network config required)."""
-        directory = Path(directory)
-        if not (directory / AGENT_CONFIG).is_file():
-            raise FileNotFoundError(f"{directory} holds no RL baseline ({AGENT_CONFIG} missing).")
-        payload = json.loads((directory / AGENT_CONFIG).read_text())
+        payload = _agent_payload(directory)
         if payload["algo"] != self.algo:
             raise ValueError(f"{directory} holds a {payload['algo']} agent but algo={self.algo}; resume with algo={payload['algo']}.")
         saved = RLNetworkConfig(**payload["config"])
         if saved != self.config:
             raise ValueError(f"{directory} was trained with network config {saved.to_dict()}, "
                              f"not {self.config.to_dict()}; resume with the run's own config.")
-        self.loss_module.load_state_dict(torch.load(directory / AGENT_WEIGHTS, weights_only=True))
+        self.loss_module.load_state_dict(torch.load(Path(directory) / AGENT_WEIGHTS, weights_only=True))
+
+
+def is_rl_agent_dir(path: str | Path) -> bool:
+    """Whether ``path`` holds a saved :class:`RLAgent` (``rl_agent.json``)."""
+    return (Path(path) / AGENT_CONFIG).is_file()
+
+
+def _agent_payload(directory: str | Path) -> dict:
+    if not is_rl_agent_dir(directory):
+        raise FileNotFoundError(f"{directory} holds no RL baseline ({AGENT_CONFIG} missing).")
+    return json.loads((Path(directory) / AGENT_CONFIG).read_text())
+
+
+def load_rl_actor(directory: str | Path, *, device: str | torch.device = "cpu") -> OneStepChunkActor:
+    """The trained actor saved in ``directory`` by :meth:`RLAgent.save`, as the one-step chunk policy
+    that :func:`mmada_rl.evaluation.evaluate` runs (greedy under its deterministic exploration type).
+
+    Examples:
+        >>> actor = load_rl_actor("runs/online_sac_PickCube-v1_s0/checkpoints/step_00050000/model")
+        >>> actor.obs_mode, actor.chunk_size
+        ('state', 1)
+    """
+    payload = _agent_payload(directory)
+    if not (Path(directory) / ACTOR_WEIGHTS).is_file() or "action_low" not in payload:
+        raise FileNotFoundError(f"{directory} holds a {payload['algo']} agent saved without its actor ({ACTOR_WEIGHTS}); "
+                                "checkpoints written by recipes/baselines/online.py include it.")
+    config = RLNetworkConfig(**payload["config"])
+    low, high = (torch.tensor(payload[k], dtype=torch.float32) for k in ("action_low", "action_high"))
+    actor = make_actor(config, Bounded(low, high, shape=low.shape))
+    actor.load_state_dict(torch.load(Path(directory) / ACTOR_WEIGHTS, weights_only=True, map_location=device))
+    return OneStepChunkActor(actor.to(device), config.obs_mode, config.image_size)

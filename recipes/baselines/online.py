@@ -57,7 +57,7 @@ def main(cfg: DictConfig) -> None:
     optimizer = make_optim(cfg, loss)
     online, demo_replay = make_online_replay(cfg), make_demo_replay(demos, obs_mode(cfg), action_spec)
     updater = make_updater(cfg, loss, optimizer, online, demo_replay)
-    agent = RLAgent(cfg.algo, nets.config, loss.module)
+    agent = RLAgent(cfg.algo, nets.config, loss.module, nets.actor)
     logger = make_logger(cfg, run_dir)
     progress = resume(cfg, run_dir, agent, optimizer, online)
     history = EvalHistory(run_dir / "eval_history.json", progress)
