@@ -14,6 +14,7 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from mmada_rl.data.windows import no_start_steps
 from mmada_rl.diffusion.path import path_log_prob
 from mmada_rl.envs.maniskill import make_env
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY
@@ -293,6 +294,34 @@ def test_demo_online_ratio_holds_in_sampled_batches(model, pick_demos):
     assert utils.split_batch(control) == (0, 8)
     batch = utils.mixed_batch(model, None, utils.make_demo_windows(control, DemoBuffer.open(pick_demos), model))
     assert batch.shape == (8,) and bool(batch[IS_DEMO_KEY].all())
+
+
+def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, model, pick_demos, tmp_path):
+    """``demos.skip_*=null`` takes the pretraining run's ``data.skip_*``; a value given overrides it."""
+    utils = recipe_utils()
+    from mmada_rl.data import DemoBuffer
+
+    checkpoint = tmp_path / "checkpoint"  # a pretraining checkpoint whose run skipped the idle starts and pauses
+    checkpoint.mkdir()
+    (checkpoint / "model").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
+    (checkpoint / "config.json").write_text(json.dumps({"data": {"skip_idle_start": True, "skip_pauses": 0.01}}))
+    cfg = OmegaConf.create({"seed": 0, "pretrained": str(checkpoint), "demos": {"ratio": 1.0, "skip_idle_start": None,
+                            "skip_pauses": None}, "replay_buffer": {"batch_size": 8}})
+    assert utils.demo_window_skips(cfg) == {"skip_idle_start": True, "skip_pauses": 0.01}
+    overridden = OmegaConf.merge(cfg, {"demos": {"skip_pauses": 0.0}})
+    assert utils.demo_window_skips(overridden) == {"skip_idle_start": True, "skip_pauses": 0.0}
+    (tmp_path / "saved").mkdir()  # a model saved on its own, without a run's config beside it
+    (tmp_path / "saved" / "policy").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
+    bare = OmegaConf.merge(cfg, {"pretrained": str(tmp_path / "saved" / "policy")})
+    assert utils.demo_window_skips(bare) == {"skip_idle_start": False, "skip_pauses": 0.0}
+    assert utils.demo_window_skips(OmegaConf.merge(cfg, {"pretrained": str(toy_pretrain_run)})) == utils.WINDOW_SKIPS
+
+    demos = DemoBuffer.open(pick_demos)
+    expected = no_start_steps(demos, skip_idle_start=True, skip_pauses=0.01)
+    assert expected.any() and not expected.all()
+    sampler = utils.make_demo_windows(cfg, demos, model).sampler
+    torch.testing.assert_close(sampler.no_start, expected)
+    assert utils.make_demo_windows(bare, demos, model).sampler.no_start is None
 
 
 def test_mixed_batches_carry_the_images_of_a_policy_with_its_own_cnn(model, pick_demos):

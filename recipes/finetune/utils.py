@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -43,6 +44,7 @@ from mmada_rl.policy import MMaDAActor, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.value import ValueNetwork, make_value_operator
+from mmada_rl.training.checkpoint import CONFIG_FILE
 from mmada_rl.training.demos import open_demos
 
 PREFIX = "[finetune]"
@@ -261,12 +263,30 @@ def split_batch(cfg: DictConfig) -> tuple[int, int]:
     return total - demo, demo
 
 
+#: The window options of :func:`make_window_buffer` a fine-tuning run shares with its pretraining, and their "off" values.
+WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0}
+
+
+def demo_window_skips(cfg: DictConfig) -> dict:
+    """``skip_idle_start`` and ``skip_pauses`` of the demonstration windows: ``demos.<option>``, or where that
+    is null (the default), the pretraining run's ``data.<option>`` (its checkpoint's ``config.json``), so
+    fine-tuning keeps drawing the windows the policy was pretrained on; off for a bare saved model."""
+    pretrained = cfg.get("pretrained")
+    saved = resolve_model_dir(pretrained).parent / CONFIG_FILE if pretrained is not None else None
+    data = json.loads(saved.read_text()).get("data", {}) if saved is not None and saved.is_file() else {}
+    options = {}
+    for name, off in WINDOW_SKIPS.items():
+        value = cfg.demos.get(name)
+        options[name] = type(off)(data.get(name, off) if value is None else value)
+    return options
+
+
 def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):
-    """Chunk windows of the demonstrations (``None`` when ``demos.ratio`` is 0)."""
+    """Chunk windows of the demonstrations (``None`` when ``demos.ratio`` is 0), with :func:`demo_window_skips`."""
     _, n_demo = split_batch(cfg)
     if n_demo == 0:
         return None
-    return make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed))
+    return make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed), **demo_window_skips(cfg))
 
 
 def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) -> TensorDict:
