@@ -179,8 +179,15 @@ def _image_size(actor) -> int | None:
     return getattr(actor, "image_size", None)
 
 
+def _camera_fov(actor) -> float | None:
+    """The camera field of view (degrees) of the policy's training images (``None``: the task's own)."""
+    if isinstance(actor, MMaDAActor):
+        return actor.model.config.camera_fov
+    return getattr(actor, "camera_fov", None)
+
+
 def eval_env_config(actor: TensorDictModuleBase, task: str, image_size: int | None = None, **kwargs) -> EnvConfig:
-    """The evaluation env of ``actor`` on ``task``: its observation mode and image size, episodes
+    """The evaluation env of ``actor`` on ``task``: its observation mode, image size and camera, episodes
     running past success (``success_once`` and ``success_at_end``); ``kwargs`` go to :class:`EnvConfig`."""
     policy_size, obs_mode = _image_size(actor), getattr(actor, "obs_mode", "rgb")  # "state": a reference policy
     if image_size is not None and policy_size is not None and image_size != policy_size:
@@ -189,7 +196,9 @@ def eval_env_config(actor: TensorDictModuleBase, task: str, image_size: int | No
             f"{policy_size}x{policy_size} images; evaluate with image_size={policy_size}."
         )
     size = policy_size or image_size
-    return EnvConfig(task=task, obs_mode=obs_mode, ignore_terminations=True, **({"image_size": size} if size else {}), **kwargs)
+    camera = {"camera_fov": _camera_fov(actor)} if obs_mode == "rgb" else {}
+    return EnvConfig(task=task, obs_mode=obs_mode, ignore_terminations=True, **({"image_size": size} if size else {}),
+                     **camera, **kwargs)
 
 
 class _Rollout(NamedTuple):

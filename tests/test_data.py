@@ -346,6 +346,26 @@ def test_keep_after_success_records_the_planner_to_the_end_of_its_path(tmp_path,
                 keep_after_success=True, progress=False)
 
 
+def test_the_camera_is_recorded_and_a_buffer_of_another_camera_is_refused(tmp_path):
+    from mmada_rl.envs.maniskill import make_env
+    from mmada_rl.training.demos import open_demos
+
+    narrow = EnvConfig(task="PickCube-v1", camera_fov=45)
+    res = collect(tmp_path / "fov45", narrow, episodes=1, progress=False)
+    assert res.buffer.metadata.camera_fov == 45 and "camera fov 45 deg" in res.buffer.summary()
+    env = make_env(narrow)
+    try:  # the stored frames are the narrowed camera's
+        first = env.reset(seed=res.buffer.metadata.seeds[0])[IMAGE_KEY]
+    finally:
+        env.close()
+    torch.testing.assert_close(res.buffer.storage[0].get(IMAGE_KEY), first)
+    assert open_demos(tmp_path / "fov45", narrow).metadata.num_episodes == 1
+    with pytest.raises(BufferMismatchError, match="camera_fov=45.0 but None was asked for"):
+        open_demos(tmp_path / "fov45", EnvConfig(task="PickCube-v1"))
+    with pytest.raises(BufferMismatchError, match="camera_fov"):  # resuming with the task's own camera
+        collect(tmp_path / "fov45", EnvConfig(task="PickCube-v1"), episodes=2, progress=False)
+
+
 def test_action_noise_executes_noisy_actions_and_records_the_exact_ones(tmp_path):
     """DART: the env moves by the noisy action, the demonstration keeps the expert's label."""
     from mmada_rl.data.recording import StepRecorder

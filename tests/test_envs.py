@@ -62,6 +62,23 @@ def test_a_robot_camera_is_dropped_from_the_image():
         env.close()
 
 
+def red_cube_pixels(image: torch.Tensor) -> int:
+    """Pixels of PickCube-v1's red cube in a CHW uint8 frame."""
+    r, g, b = image.int()
+    return int(((r > 120) & (g < 60) & (b < 60)).sum())
+
+
+def test_camera_fov_narrows_the_task_camera(pick_env):
+    narrow = make_env(EnvConfig(task="PickCube-v1", camera_fov=45))
+    try:
+        for seed in (0, 1, 2):
+            wide, close = pick_env.reset(seed=seed)[IMAGE_KEY], narrow.reset(seed=seed)[IMAGE_KEY]
+            assert close.shape == wide.shape == (3, 64, 64)
+            assert red_cube_pixels(close) >= 3 * max(red_cube_pixels(wide), 1)  # the same cube, bigger
+    finally:
+        narrow.close()
+
+
 def test_dense_reward_is_normalised(pick_env):
     td = pick_env.rollout(3)
     r = td["next", "reward"]
@@ -82,7 +99,8 @@ def test_unknown_task_lists_supported_ones():
 
 @pytest.mark.parametrize(
     "field, value, match",
-    [("obs_mode", "depth", "obs_mode"), ("reward", "shaped", "reward"), ("image_size", 7, "image_size"), ("num_workers", 0, "num_workers")],
+    [("obs_mode", "depth", "obs_mode"), ("reward", "shaped", "reward"), ("image_size", 7, "image_size"), ("num_workers", 0, "num_workers"),
+     ("camera_fov", 0, "camera_fov"), ("camera_fov", 180, "camera_fov")],
 )
 def test_bad_env_config_values_raise_one_clear_error(field, value, match):
     with pytest.raises(ValueError, match=match):

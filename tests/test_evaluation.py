@@ -36,6 +36,22 @@ def load_benchmark(name: str):
     return module
 
 
+def test_the_evaluation_env_uses_the_camera_the_policy_was_trained_on(model_dir, tmp_path):
+    from mmada_rl.baselines import BCConfig, BCPolicy
+    from mmada_rl.evaluation import eval_env_config, load_actor
+    from mmada_rl.policy import MMaDAModel
+
+    assert eval_env_config(load_actor(model_dir), "PickCube-v1").camera_fov is None  # the task's own camera
+    model = MMaDAModel.load(model_dir)
+    model.config.camera_fov = 45.0
+    narrow = load_actor(model.save(tmp_path / "narrow"))  # saved and loaded with its camera
+    assert eval_env_config(narrow, "PickCube-v1").camera_fov == 45.0
+    bc = BCPolicy(BCConfig(camera_fov=30.0))
+    assert eval_env_config(bc, "PickCube-v1").camera_fov == 30.0
+    state_bc = BCPolicy(BCConfig(camera_fov=30.0, obs_mode="state", state_dim=42))
+    assert eval_env_config(state_bc, "PickCube-v1").camera_fov is None  # no camera at all
+
+
 def test_wilson_interval_matches_hand_computation():
     # 7/10, z = 1.96: centre (0.7 + 1.9208/10) / 1.38415 = 0.64449, half-width 0.24770
     low, high = wilson_interval(7, 10)

@@ -62,6 +62,8 @@ class ChunkPolicyConfig:
         encoder: :class:`~mmada_rl.baselines.encoders.EncoderConfig` (or its dict).
         obs_mode: ``"rgb"`` (image + proprio, default) or ``"state"`` (the privileged
             state vector alone: ``state_dim`` is its size).
+        camera_fov: field of view (degrees) of the training images' camera; ``None``: the
+            task's own. Evaluation builds its env with it.
     """
 
     chunk_size: int = 5
@@ -70,6 +72,7 @@ class ChunkPolicyConfig:
     image_size: int = 64
     encoder: EncoderConfig = field(default_factory=EncoderConfig)
     obs_mode: str = "rgb"
+    camera_fov: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.encoder, dict):
@@ -131,6 +134,11 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
     def image_size(self) -> int | None:
         """Side of the images the policy reads (``None``: a state policy reads none)."""
         return self.config.image_size if self.config.obs_mode == "rgb" else None
+
+    @property
+    def camera_fov(self) -> float | None:
+        """Field of view (degrees) of the camera it reads (``None``: the task's own, or a state policy)."""
+        return self.config.camera_fov if self.config.obs_mode == "rgb" else None
 
     @property
     def obs_mode(self) -> str:

@@ -86,6 +86,7 @@ class RLNetworkConfig:
             False: one learned log-std per action dimension (PPO).
         init_scale: standard deviation of the pre-tanh Gaussian at initialisation.
         scale_lb: smallest standard deviation.
+        camera_fov: field of view (degrees) of the camera (``rgb``; ``None``: the task's own).
     """
 
     obs_mode: str = "state"
@@ -100,6 +101,7 @@ class RLNetworkConfig:
     state_dependent_scale: bool = True
     init_scale: float = 1.0
     scale_lb: float = 0.1
+    camera_fov: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.encoder, dict):
@@ -252,6 +254,7 @@ class OneStepChunkActor(TensorDictModuleBase):
         actor: the trained ``ProbabilisticActor`` (shared, not copied).
         obs_mode: ``"state"`` or ``"rgb"``; evaluation builds its env with it.
         image_size: the image side (``rgb``), checked against the evaluation env.
+        camera_fov: the camera's field of view in degrees (``rgb``; ``None``: the task's own).
 
     Examples:
         >>> result = evaluate(OneStepChunkActor(actor, "state"), "PickCube-v1", episodes=20)
@@ -261,11 +264,13 @@ class OneStepChunkActor(TensorDictModuleBase):
     execute_steps = 1
     num_denoise_steps = 0
 
-    def __init__(self, actor: ProbabilisticActor, obs_mode: str, image_size: int | None = None) -> None:
+    def __init__(self, actor: ProbabilisticActor, obs_mode: str, image_size: int | None = None,
+                 camera_fov: float | None = None) -> None:
         super().__init__()
         self.actor = actor
         self.obs_mode = obs_mode
         self.image_size = image_size if obs_mode == "rgb" else None
+        self.camera_fov = camera_fov if obs_mode == "rgb" else None
         self.action_dim = int(actor.spec[ACTION_KEY].shape[-1])
         self.in_keys = observation_keys(obs_mode)
         self.out_keys = [ACTION_CHUNK_KEY, ACTION_KEY]
@@ -370,4 +375,4 @@ def load_rl_actor(directory: str | Path, *, device: str | torch.device = "cpu") 
     low, high = (torch.tensor(payload[k], dtype=torch.float32) for k in ("action_low", "action_high"))
     actor = make_actor(config, Bounded(low, high, shape=low.shape))
     actor.load_state_dict(torch.load(Path(directory) / ACTOR_WEIGHTS, weights_only=True, map_location=device))
-    return OneStepChunkActor(actor.to(device), config.obs_mode, config.image_size)
+    return OneStepChunkActor(actor.to(device), config.obs_mode, config.image_size, config.camera_fov)

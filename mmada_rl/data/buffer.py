@@ -54,6 +54,9 @@ TRANSITION_KEYS = (
 )
 IMAGE_KEYS = (IMAGE_KEY, ("next", *IMAGE_KEY))
 
+#: ``DemoBuffer.open(camera_fov=UNCHECKED)``: accept any camera (``None`` there means the task's own camera).
+UNCHECKED = object()
+
 
 class BufferMismatchError(ValueError):
     """A buffer's task, control mode, observation mode or image size differs from what is asked."""
@@ -124,8 +127,10 @@ class DemoBuffer:
         control_mode: str | None = None,
         obs_mode: str | None = None,
         image_size: int | None = None,
+        camera_fov: float | None | object = UNCHECKED,
     ) -> DemoBuffer:
-        """Load the buffer in ``path``; each given expectation must match its metadata.
+        """Load the buffer in ``path``; each given expectation must match its metadata
+        (``camera_fov``, whose ``None`` is the task's own camera, is checked unless left out).
 
         Raises:
             FileNotFoundError: ``path`` holds no buffer.
@@ -134,9 +139,12 @@ class DemoBuffer:
         path = Path(path)
         metadata = BufferMetadata.load(path)
         expected = {"task": task, "control_mode": control_mode, "obs_mode": obs_mode, "image_size": image_size}
+        expected = {k: v for k, v in expected.items() if v is not None}
+        if camera_fov is not UNCHECKED:
+            expected["camera_fov"] = camera_fov
         for name, want in expected.items():
             have = getattr(metadata, name)
-            if want is not None and want != have:
+            if want != have:
                 raise BufferMismatchError(
                     f"Buffer {path} was recorded with {name}={have!r} but {want!r} was asked for; "
                     f"collect a new buffer with that {name} or use {name}={have!r}."
@@ -159,6 +167,7 @@ class DemoBuffer:
                 control_mode=metadata.control_mode,
                 obs_mode=metadata.obs_mode,
                 image_size=metadata.image_size,
+                camera_fov=metadata.camera_fov,
             )
         return cls.create(path, metadata, capacity)
 
@@ -259,7 +268,8 @@ class DemoBuffer:
         lines = [
             f"buffer        {self.path}",
             f"task          {m.task}  ({m.instructions[0] if m.instructions else '-'!s})",
-            f"control mode  {m.control_mode}   obs mode {m.obs_mode}   image {m.image_size}x{m.image_size}",
+            f"control mode  {m.control_mode}   obs mode {m.obs_mode}   image {m.image_size}x{m.image_size}"
+            + (f" (camera fov {m.camera_fov:g} deg)" if m.camera_fov is not None else ""),
             f"episodes      {m.num_episodes}   transitions {m.num_transitions} / capacity {m.capacity}",
         ]
         if lengths:

@@ -98,6 +98,7 @@ def collect(
         action_dim=source.action_dim,
         state_dim=source.state_dim,
         reward=cfg.reward,
+        camera_fov=cfg.camera_fov if cfg.obs_mode == "rgb" else None,
         max_episode_steps=cfg.episode_steps,
         source=source.name,
         keep_after_success=bool(keep_after_success),

@@ -47,6 +47,8 @@ class BufferMetadata:
         control_mode: controller the actions are expressed in.
         obs_mode: ``"rgb"`` or ``"state"``.
         image_size: camera side in pixels (0 for state-only buffers).
+        camera_fov: the camera's field of view in degrees (``None``: the task's own; see
+            :class:`~mmada_rl.envs.EnvConfig`).
         action_dim, state_dim: sizes of one action / state vector.
         reward: ``"dense"`` or ``"sparse"``.
         max_episode_steps: episode length limit used while recording.
@@ -71,6 +73,7 @@ class BufferMetadata:
     action_dim: int
     state_dim: int
     reward: str = "dense"
+    camera_fov: float | None = None
     max_episode_steps: int | None = None
     source: str = "planner"
     keep_after_success: bool = False

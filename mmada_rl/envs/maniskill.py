@@ -50,6 +50,11 @@ class EnvConfig:
             position where the task defines one); ``"state"``: ManiSkill's full
             privileged state vector, no image.
         image_size: side of the square camera image, pixels.
+        camera_fov: vertical field of view of the task's camera (``base_camera``), degrees;
+            ``None`` keeps the task's own (90° for the tabletop tasks). A narrower view
+            puts more pixels on the objects: PickCube-v1's 4 cm cube covers ~6 pixels of
+            a 64x64 image at 90° and ~35 at 45° (same camera position, the whole spawn
+            area still in view).
         control_mode: ManiSkill controller, e.g. ``"pd_ee_delta_pose"``,
             ``"pd_joint_delta_pos"``, ``"pd_joint_pos"``.
         reward: ``"dense"`` (ManiSkill's normalised dense reward, in [0, 1]) or ``"sparse"``.
@@ -69,6 +74,7 @@ class EnvConfig:
     task: str = "PickCube-v1"
     obs_mode: ObsMode = "rgb"
     image_size: int = 64
+    camera_fov: float | None = None
     control_mode: str = "pd_ee_delta_pose"
     reward: RewardMode = "dense"
     max_episode_steps: int | None = None
@@ -84,6 +90,10 @@ class EnvConfig:
             raise ValueError(f"reward must be 'dense' or 'sparse', got {self.reward!r}.")
         if not isinstance(self.image_size, int) or not 16 <= self.image_size <= 512:
             raise ValueError(f"image_size must be an int in [16, 512] pixels, got {self.image_size!r}.")
+        if self.camera_fov is not None and not (isinstance(self.camera_fov, (int, float)) and 1 <= self.camera_fov < 180):
+            raise ValueError(f"camera_fov must be a field of view in degrees in [1, 180) or None, got {self.camera_fov!r}.")
+        if self.camera_fov is not None:
+            self.camera_fov = float(self.camera_fov)
         if self.max_episode_steps is not None and self.max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be positive, got {self.max_episode_steps!r}.")
         if self.num_workers < 1:
@@ -239,6 +249,8 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
     )
     if cfg.obs_mode == "rgb":
         kwargs["sensor_configs"] = dict(width=cfg.image_size, height=cfg.image_size)
+        if cfg.camera_fov is not None:
+            kwargs["sensor_configs"]["base_camera"] = dict(fov=float(np.deg2rad(cfg.camera_fov)))
     if cfg.episode_steps is not None:
         kwargs["max_episode_steps"] = cfg.episode_steps
     try:

@@ -69,6 +69,8 @@ class MMaDAConfig:
         denoiser: a preset name (``tiny``, ``small``, ``base``) or a full config dict.
         denoiser_overrides: fields overriding the preset (e.g. ``{"attention": "block_causal"}``).
         sampler: parallel-decoding options.
+        camera_fov: field of view (degrees) of the camera whose images the policy was
+            trained on; ``None``: the task's own. Evaluation builds its env with it.
     """
 
     chunk_size: int = 5
@@ -79,6 +81,7 @@ class MMaDAConfig:
     denoiser: str | dict = "small"
     denoiser_overrides: dict = field(default_factory=dict)
     sampler: dict = field(default_factory=dict)
+    camera_fov: float | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.chunk_size, int) or self.chunk_size < 1:

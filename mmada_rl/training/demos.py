@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from mmada_rl.data import DemoBuffer
+from mmada_rl.data.buffer import UNCHECKED
 from mmada_rl.envs.maniskill import EnvConfig
 
 __all__ = ["open_demos"]
@@ -15,7 +16,7 @@ def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, p
 
     Raises:
         BufferMismatchError: the buffer's task, control mode, observation mode or
-            image size differs from ``env``'s (one sentence naming both values).
+            image size or camera differs from ``env``'s (one sentence naming both values).
         FileNotFoundError: no buffer at ``path`` and ``collect_episodes == 0``.
     """
     path = Path(path)
@@ -25,5 +26,6 @@ def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, p
 
         print(f"{prefix}collecting {collect_episodes - have} planner demonstrations into {path}")
         collect(path, env, episodes=collect_episodes)
+    rgb = env.obs_mode == "rgb"
     return DemoBuffer.open(path, task=env.task, control_mode=env.control_mode, obs_mode=env.obs_mode,
-                           image_size=env.image_size if env.obs_mode == "rgb" else None)
+                           image_size=env.image_size if rgb else None, camera_fov=env.camera_fov if rgb else UNCHECKED)

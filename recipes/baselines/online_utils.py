@@ -124,7 +124,8 @@ def make_networks(cfg: DictConfig, env, demos: DemoBuffer | None) -> Networks:
                          f"ones (obs_mode={mode}); collect demos in that observation mode.")
     model = OmegaConf.to_container(cfg.model)
     config = RLNetworkConfig(obs_mode=mode, state_dim=state_dim, action_dim=int(env.action_spec.shape[-1]),
-                             image_size=int(cfg.env.image_size), state_dependent_scale=cfg.algo != "ppo", **model)
+                             image_size=int(cfg.env.image_size), state_dependent_scale=cfg.algo != "ppo",
+                             camera_fov=cfg.env.camera_fov if mode == "rgb" else None, **model)
     stats = None
     if demos is not None:
         states = demos.storage[: len(demos)].get(STATE_KEY).float()
@@ -348,7 +349,8 @@ def evaluate(cfg: DictConfig, actor, progress: Progress) -> dict:
     from mmada_rl.evaluation import evaluate as run_eval
 
     mode = obs_mode(cfg)
-    result = run_eval(OneStepChunkActor(actor, mode, int(cfg.env.image_size)), cfg.env.task, episodes=int(cfg.eval.episodes),
+    policy = OneStepChunkActor(actor, mode, int(cfg.env.image_size), cfg.env.camera_fov)
+    result = run_eval(policy, cfg.env.task, episodes=int(cfg.eval.episodes),
                       image_size=int(cfg.env.image_size), control_mode=cfg.env.control_mode,
                       max_episode_steps=cfg.eval.max_episode_steps, execute_steps=1, progress=False)
     return {"env_steps": progress.env_steps, "updates": progress.updates, "success_once": result.success_once,

@@ -37,6 +37,7 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
         "state_dim": int(meta.state_dim),
         "image_size": int(meta.image_size or cfg.env.image_size),
         "obs_mode": meta.obs_mode,
+        "camera_fov": meta.camera_fov,
         "encoder": OmegaConf.to_container(cfg.model.encoder),
         **OmegaConf.to_container(cfg.model[cfg.algo]),
     }

@@ -84,6 +84,7 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         denoiser=m.denoiser if isinstance(m.denoiser, str) else OmegaConf.to_container(m.denoiser),
         denoiser_overrides=OmegaConf.to_container(m.denoiser_overrides),
         sampler={"num_steps": int(m.num_denoise_steps), "schedule": m.sampler_schedule, "kernel": cfg.loss.kernel},
+        camera_fov=cfg.env.camera_fov,
     )
     return MMaDAModel(config, tokenizers).to(cfg.device)
 
