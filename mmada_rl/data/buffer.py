@@ -59,7 +59,7 @@ UNCHECKED = object()
 
 
 class BufferMismatchError(ValueError):
-    """A buffer's task, control mode, observation mode or image size differs from what is asked."""
+    """A buffer's task, control mode, observation mode, image size or camera differs from what is asked."""
 
 
 class InstructionLookup(Transform):
