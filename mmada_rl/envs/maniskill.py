@@ -90,9 +90,9 @@ class EnvConfig:
             raise ValueError(f"reward must be 'dense' or 'sparse', got {self.reward!r}.")
         if not isinstance(self.image_size, int) or not 16 <= self.image_size <= 512:
             raise ValueError(f"image_size must be an int in [16, 512] pixels, got {self.image_size!r}.")
-        if self.camera_fov is not None and not (isinstance(self.camera_fov, (int, float)) and 1 <= self.camera_fov < 180):
-            raise ValueError(f"camera_fov must be a field of view in degrees in [1, 180) or None, got {self.camera_fov!r}.")
         if self.camera_fov is not None:
+            if not (isinstance(self.camera_fov, (int, float)) and 1 <= self.camera_fov < 180):
+                raise ValueError(f"camera_fov must be a field of view in degrees in [1, 180) or None, got {self.camera_fov!r}.")
             self.camera_fov = float(self.camera_fov)
         if self.max_episode_steps is not None and self.max_episode_steps < 1:
             raise ValueError(f"max_episode_steps must be positive, got {self.max_episode_steps!r}.")
