@@ -434,7 +434,10 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     out = compare.run_dir(runs, "PickCube-v1", "mmada_rwr", 0)
     fresh = compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "runs/pretrain_{task}_s{seed}", 5, 500)
     assert "pretrained=runs/pretrain_PickCube-v1_s0" in fresh and "collector.total_env_steps=1000" in fresh
-    assert "checkpoint.resume=true" not in fresh
+    assert "checkpoint.resume=true" not in fresh and "demos.dir=data/PickCube-v1" in fresh
+    narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
+    assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
+    assert not any(a.startswith("demos.dir") for a in compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y"))
     import shutil
 
     shutil.copytree(rwr_run, out)  # a real (toy) fine-tuning run in the benchmark's layout

@@ -5,6 +5,9 @@
         --pretrained runs/pretrain_{task}_s{seed}
     # only some methods, shorter
     python benchmarks/compare/compare.py run --task PickCube-v1 --methods mmada_rwr mmada_ppo --budget 5000 ...
+    # a policy pretrained through a narrower camera mixes in the demonstrations seen through it
+    python benchmarks/compare/compare.py run --task PushCube-v1 --methods mmada_ppo_group --pretrained runs/push_fov60_s{seed} \\
+        --demos data/{task}-fov60 --runs runs/compare_fov60 --budget 8000 --eval-every 4000 --eval-episodes 50
     # tables and curves from whatever runs exist
     python benchmarks/compare/compare.py report --task PickCube-v1 PushCube-v1
 
@@ -82,12 +85,14 @@ def run_dir(runs: Path, task: str, method: str, seed: int) -> Path:
 
 
 def command(method: str, task: str, seed: int, budget: int, out: Path, pretrained: str, eval_episodes: int,
-            eval_every: int) -> list[str]:
+            eval_every: int, demos: str = "data/{task}") -> list[str]:
+    """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``
+    (both only used by our fine-tuning methods: the baselines read their recipe's own data directory)."""
     _, _, recipe, online = METHODS[method]
     cmd = [sys.executable, *recipe, f"env.task={task}", f"seed={seed}", f"run_dir={out}", f"eval.episodes={eval_episodes}"]
     if method.startswith("mmada"):
         cmd += [f"pretrained={pretrained.format(task=task, seed=seed)}", f"collector.total_env_steps={budget}",
-                f"eval.interval_env_steps={eval_every}", f"demos.dir=data/{task}"]
+                f"eval.interval_env_steps={eval_every}", f"demos.dir={demos.format(task=task, seed=seed)}"]
     elif online:
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
     if (out / "checkpoints").exists():
@@ -103,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
                 if (out / "final.json").exists():
                     print(f"[compare] {task} {method} s{seed}: done already ({out})")
                     continue
-                cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every)
+                cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every,
+                              args.demos)
                 print(f"[compare] {task} {method} s{seed}: {' '.join(cmd[1:])}", flush=True)
                 proc = subprocess.run(cmd, cwd=ROOT)
                 if proc.returncode != 0:
@@ -186,6 +192,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval-episodes", type=int, default=20)
     p.add_argument("--pretrained", default="runs/pretrain_{task}_s{seed}",
                    help="pretrained MMaDA-VLA run per task and seed ({task}, {seed} are filled in)")
+    p.add_argument("--demos", default="data/{task}",
+                   help="demonstration buffer our fine-tuning methods mix in ({task}, {seed} are filled in); it must "
+                        "match the pretrained policy's camera, e.g. data/PushCube-v1-fov60 for a camera_fov=60 policy")
     p.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
     p.set_defaults(func=run)
     r = sub.add_parser("report", help="tables and curves from the existing runs")
