@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -27,7 +28,7 @@ def machine() -> dict:
 def write_results(name: str, payload: dict, markdown: str, directory: Path = RESULTS) -> tuple[Path, Path]:
     """Write ``results/NAME.json`` and ``results/NAME.md`` (the Markdown gets the command line)."""
     directory.mkdir(parents=True, exist_ok=True)
-    command = "python " + " ".join([os.path.relpath(sys.argv[0])] + sys.argv[1:])
+    command = "python " + shlex.join([os.path.relpath(sys.argv[0])] + sys.argv[1:])  # quoted as typed
     payload = {"command": command, "machine": machine(), **payload}
     json_path = directory / f"{name}.json"
     md_path = directory / f"{name}.md"
