@@ -15,7 +15,7 @@ from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from mmada_rl.data.windows import no_start_steps
-from mmada_rl.diffusion.path import path_log_prob
+from mmada_rl.diffusion.path import path_log_prob, sample_steps, select_steps
 from mmada_rl.envs.maniskill import make_env
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY
 from mmada_rl.keys import ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
@@ -242,7 +242,9 @@ def test_kl_penalty_is_zero_at_the_reference_and_grows_when_the_policy_moves(mod
 
 
 # -- path PPO ---------------------------------------------------------------------------------
-def test_path_ppo_ratio_is_one_at_unchanged_parameters_and_an_update_raises_good_paths(model):
+@pytest.fixture(scope="module")
+def sampled_chunks(model):
+    """Two chunks sampled by the toy policy in a real PickCube-v1 env, with their decoding paths."""
     import copy
 
     env = make_env("PickCube-v1", max_episode_steps=10)
@@ -251,24 +253,66 @@ def test_path_ppo_ratio_is_one_at_unchanged_parameters_and_an_update_raises_good
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
         rollout = penv.env.rollout(2, penv.policy, break_when_any_done=False)
     env.close()
+    return rollout
+
+
+@pytest.mark.parametrize("denoising_steps", [None, 2])
+def test_path_ppo_ratio_is_one_at_unchanged_parameters_and_an_update_raises_good_paths(model, sampled_chunks, denoising_steps):
+    import copy
+
+    rollout = sampled_chunks.clone()
     path = rollout[DECODING_PATH_KEY]
     recorded = rollout["vla_action", "log_probs"]
-    net = actor.model.denoiser.eval()
+    net = copy.deepcopy(model.denoiser).eval()
     with torch.no_grad():
         torch.testing.assert_close(path_log_prob(net, path.reshape(-1)).reshape(recorded.shape), recorded, rtol=1e-5, atol=1e-4)
     rollout.set(ADVANTAGE_KEY, torch.tensor([1.0, 1.0]))
-    loss_fn = PathPPOLoss(net, ratio_level="step")
+    loss_fn = PathPPOLoss(net, ratio_level="step", denoising_steps=denoising_steps)
+    torch.manual_seed(0)  # the loss draws its replayed steps from torch's generator
     out = loss_fn(rollout)
     assert float(out["ratio_mean"]) == pytest.approx(1.0, abs=1e-4)
     assert float(out["approx_kl"]) == pytest.approx(0.0, abs=1e-4)
     optim = torch.optim.SGD(net.parameters(), lr=0.05)
     out["loss_objective"].backward()
     optim.step()
+    flat = path.reshape(-1)
+    steps = None
+    if denoising_steps is not None:  # the same draw as the loss's: only those steps were pushed up
+        torch.manual_seed(0)
+        steps = sample_steps(flat.committed, denoising_steps)
+        recorded = select_steps(flat.log_probs, steps).sum((-2, -1)).reshape(recorded.shape)
     with torch.no_grad():
-        after = path_log_prob(net, path.reshape(-1)).reshape(recorded.shape)
+        after = path_log_prob(net, flat, steps=steps).reshape(recorded.shape)
     assert (after > recorded).all()
     with pytest.raises(ValueError, match="ratio_level"):
         PathPPOLoss(net, ratio_level="chunk")
+    with pytest.raises(ValueError, match="denoising_steps"):
+        PathPPOLoss(net, ratio_level="path", denoising_steps=2)
+
+
+def test_replaying_some_decoding_steps_scores_them_exactly(model, sampled_chunks):
+    path = sampled_chunks[DECODING_PATH_KEY].reshape(-1)
+    num = path.num_steps
+    with torch.no_grad():
+        full = path_log_prob(model.denoiser, path, per_token=True)  # (B, N, T)
+        torch.testing.assert_close(full, path.log_probs, rtol=1e-5, atol=1e-4)
+        steps = sample_steps(path.committed, 3, generator=torch.Generator().manual_seed(0))
+        part = path_log_prob(model.denoiser, path, per_token=True, steps=steps)
+    assert steps.shape == (path.shape[0], 3) and (steps.diff(dim=-1) > 0).all()  # distinct, ordered
+    assert path.committed.any(-1).gather(1, steps).all()  # only steps that committed a token
+    torch.testing.assert_close(part, select_steps(full, steps))
+    # every step is drawn equally often
+    counts = torch.zeros(num)
+    generator = torch.Generator().manual_seed(1)
+    committed = torch.ones(1, num, 4, dtype=torch.bool)
+    for _ in range(2000):
+        counts[sample_steps(committed, 2, generator=generator)[0]] += 1
+    assert (counts / counts.sum() - 1 / num).abs().max() < 0.03
+    # a step that committed nothing is only drawn when too few others are left
+    committed[0, 0] = False
+    assert 0 not in sample_steps(committed, num - 1)[0].tolist()
+    with pytest.raises(ValueError, match="decoding steps"):
+        sample_steps(committed, num + 1)
 
 
 # -- demo/online mix ---------------------------------------------------------------------------
@@ -387,7 +431,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
 
 
 @pytest.mark.parametrize("name, overrides, steps", [
-    ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2"], 40),
+    ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
+                   "loss.ppo.denoising_steps=2"], 40),
     ("filtered_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
                                  "loss.rwr.normalize_weights=true"], 30),
 ])
@@ -420,6 +465,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["pretrained=null"], "pretrained=null"),
     (["demos.ratio=1.5"], "demos.ratio must lie in [0, 1]"),
     (["demos.ratio=1.0", "algo=ppo"], "needs algo=rwr"),
+    (["algo=ppo", "loss.ppo.ratio_level=path", "loss.ppo.denoising_steps=2"], "the path ratio needs every step"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

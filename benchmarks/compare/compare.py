@@ -62,6 +62,11 @@ METHODS = {
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
                         ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
                          "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"], True),
+    "mmada_ppo_group_2steps": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 denoising "
+                               "steps replayed per update (ours)", "rgb+proprio",
+                               ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
+                                "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5",
+                                "loss.ppo.denoising_steps=2"], True),
     "ppo_rgb": ("PPO from scratch", "rgb+proprio",
                 ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=ppo"], True),
     "sac_rlpd_state": ("SAC + demos (RLPD)", "privileged state (reference)",

@@ -18,7 +18,7 @@ from mmada_rl.diffusion.forward_process import (
     make_kernel,
 )
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, LOGITS_KEY, NOISY_SEQUENCE_KEY, VISUAL_FEATURES_KEY
-from mmada_rl.diffusion.path import DecodingPath, path_log_prob, target_log_probs
+from mmada_rl.diffusion.path import DecodingPath, path_log_prob, sample_steps, target_log_probs
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SampleResult, SamplerConfig, is_greedy
 from mmada_rl.diffusion.schedules import (
     CosineNoiseSchedule,
@@ -53,5 +53,6 @@ __all__ = [
     "make_noise_schedule",
     "masked_counts",
     "path_log_prob",
+    "sample_steps",
     "target_log_probs",
 ]

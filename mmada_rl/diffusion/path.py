@@ -19,7 +19,7 @@ from tensordict import tensorclass
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-__all__ = ["DecodingPath", "path_log_prob", "target_log_probs", "unwrap_denoiser"]
+__all__ = ["DecodingPath", "path_log_prob", "sample_steps", "select_steps", "target_log_probs", "unwrap_denoiser"]
 
 
 @tensorclass
@@ -94,12 +94,13 @@ def path_log_prob(
     path: DecodingPath,
     visual: torch.Tensor | None = None,
     per_token: bool = False,
+    steps: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Log-probability of a recorded path under the denoiser's current parameters.
 
-    All ``N`` steps are replayed in one batched forward pass (batch ``B * N``)
-    with the recorded inputs and noise levels. Put the denoiser in ``eval()``
-    mode (no dropout) to reproduce the sampler's distribution.
+    The replayed steps run in one batched forward pass (batch ``B * N``, or
+    ``B * S`` with ``steps``) with the recorded inputs and noise levels. Put the
+    denoiser in ``eval()`` mode (no dropout) to reproduce the sampler's distribution.
 
     Args:
         denoiser: the denoiser (or its ``TensorDictModule``) that sampled, or a
@@ -108,19 +109,51 @@ def path_log_prob(
         visual: the visual features used while sampling ``[B, N_v, d_vis]``, if any.
         per_token: return the per-step, per-target log-probabilities ``[B, N, T]``
             (0 where nothing was committed) instead of their sum ``[B]``.
+        steps: Long ``[B, S]``: replay only these decoding steps of each path
+            (``S`` forward passes per path instead of ``N``); the result covers
+            those steps only (``[B, S, T]`` with ``per_token``). Each step's
+            distribution depends on its recorded inputs alone, so any subset is
+            scored exactly.
     """
     net = unwrap_denoiser(denoiser)
-    batch, steps, num_targets = path.inputs.shape
-    positions = net.layout.target_positions.to(path.inputs.device)
-    ids = path.start_ids[:, None, :].expand(batch, steps, -1).clone()  # (B, N, L)
-    ids[:, :, positions] = path.inputs
+    inputs, noise_levels, committed, tokens = path.inputs, path.noise_levels, path.committed, path.tokens
+    if steps is not None:
+        inputs, committed, tokens = (select_steps(x, steps) for x in (inputs, committed, tokens))
+        noise_levels = noise_levels.gather(1, steps)
+    batch, num_steps, num_targets = inputs.shape
+    positions = net.layout.target_positions.to(inputs.device)
+    ids = path.start_ids[:, None, :].expand(batch, num_steps, -1).clone()  # (B, S, L)
+    ids[:, :, positions] = inputs
     if visual is not None:
-        visual = visual.repeat_interleave(steps, dim=0)  # (B * N, N_v, d_vis)
-    temperature = path.temperature.repeat_interleave(steps)  # (B * N,)
+        visual = visual.repeat_interleave(num_steps, dim=0)  # (B * S, N_v, d_vis)
+    temperature = path.temperature.repeat_interleave(num_steps)  # (B * S,)
     logp = target_log_probs(
-        net, ids.reshape(batch * steps, -1), path.noise_levels.reshape(-1), temperature, visual
-    )  # (B * N, T, V)
-    chosen = logp.gather(-1, path.tokens.reshape(batch * steps, num_targets, 1)).squeeze(-1)
-    chosen = torch.where(path.committed.reshape(batch * steps, -1), chosen, torch.zeros_like(chosen))
-    chosen = chosen.reshape(batch, steps, num_targets)
+        net, ids.reshape(batch * num_steps, -1), noise_levels.reshape(-1), temperature, visual
+    )  # (B * S, T, V)
+    chosen = logp.gather(-1, tokens.reshape(batch * num_steps, num_targets, 1)).squeeze(-1)
+    chosen = torch.where(committed.reshape(batch * num_steps, -1), chosen, torch.zeros_like(chosen))
+    chosen = chosen.reshape(batch, num_steps, num_targets)
     return chosen if per_token else chosen.sum(dim=(-2, -1))
+
+
+def select_steps(per_step: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """``per_step[b, steps[b, s]]`` for a per-step record ``[B, N, T]`` and step indices ``[B, S]``."""
+    return per_step.gather(1, steps[..., None].expand(-1, -1, per_step.shape[-1]))
+
+
+def sample_steps(committed: torch.Tensor, num: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """``num`` distinct decoding steps per path, uniformly among the steps that committed a token.
+
+    Args:
+        committed: Bool ``[B, N, T]`` (a path's ``committed``).
+        num: steps per path (``<= N``); a path with fewer committing steps gets
+            some that committed nothing, which score 0 and count as invalid.
+
+    Returns Long ``[B, num]``, in increasing order.
+    """
+    active = committed.any(-1)  # (B, N)
+    if not 0 < num <= active.shape[-1]:
+        raise ValueError(f"cannot pick {num} of {active.shape[-1]} decoding steps per path.")
+    keys = torch.rand(active.shape, generator=generator, device=active.device)
+    keys = torch.where(active, keys, keys - 2.0)  # steps that committed something rank first
+    return keys.topk(num, dim=-1).indices.sort(dim=-1).values

@@ -12,6 +12,12 @@ diffusion policies and dVLA-RL for discrete ones. The ratio can be taken
 * ``"path"``: one ratio for the whole path (the product of the step ratios;
   high variance with many committed tokens);
 * ``"token"``: one ratio per committed token.
+
+Replaying a path costs one denoiser forward pass per decoding step. With
+``denoising_steps=S`` each loss call replays ``S`` of the ``N`` steps of every
+path, drawn uniformly among the steps that committed a token: the step- and
+token-level objectives are means over steps, so this is an unbiased estimate at
+``S / N`` of the cost (DPPO likewise fine-tunes a subset of the denoising steps).
 """
 from __future__ import annotations
 
@@ -25,7 +31,7 @@ from torchrl.objectives.common import LossModule
 
 from mmada_rl.diffusion.denoiser import MaskedDiffusionDenoiser, make_denoiser_module
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
-from mmada_rl.diffusion.path import path_log_prob
+from mmada_rl.diffusion.path import path_log_prob, sample_steps, select_steps
 from mmada_rl.keys import ADVANTAGE_KEY, VLA_ACTION_KEY
 
 __all__ = ["PathPPOLoss"]
@@ -47,6 +53,9 @@ class PathPPOLoss(LossModule):
         clip_epsilon: PPO's ``epsilon``.
         ratio_level: ``"step"``, ``"path"`` or ``"token"`` (module docstring).
         normalize_advantage: standardise the advantages over the batch.
+        denoising_steps: replay this many decoding steps of each path per call
+            (drawn afresh each call); ``None``: all of them. Not with ``ratio_level="path"``,
+            whose ratio is the product over every step.
 
     Returns ``loss_objective`` and diagnostics ``clip_fraction``, ``approx_kl``
     (mean of ``old - new`` log-probability per ratio unit) and ``ratio_mean``.
@@ -89,9 +98,13 @@ class PathPPOLoss(LossModule):
         clip_epsilon: float = 0.2,
         ratio_level: str = "step",
         normalize_advantage: bool = False,
+        denoising_steps: int | None = None,
     ) -> None:
         if ratio_level not in RATIO_LEVELS:
             raise ValueError(f"ratio_level must be one of {RATIO_LEVELS}, got {ratio_level!r}.")
+        if denoising_steps is not None and (int(denoising_steps) < 1 or ratio_level == "path"):
+            raise ValueError(f"denoising_steps={denoising_steps!r}: use a positive number of steps with ratio_level "
+                             "'step' or 'token' (the path ratio needs every step), or None for all steps.")
         if not 0 < clip_epsilon < 1:
             raise ValueError(f"clip_epsilon must lie in (0, 1), got {clip_epsilon!r}.")
         super().__init__()
@@ -101,6 +114,7 @@ class PathPPOLoss(LossModule):
         self.convert_to_functional(denoiser, "denoiser_network")
         self.clip_epsilon, self.ratio_level = float(clip_epsilon), ratio_level
         self.normalize_advantage = bool(normalize_advantage)
+        self.denoising_steps = None if denoising_steps is None else int(denoising_steps)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -124,10 +138,12 @@ class PathPPOLoss(LossModule):
         if self.cross_attention:
             visual = tensordict.get(self.tensor_keys.visual)
             visual = self.denoiser_network.module.flat_visual(visual, path.shape[0])
+        old, committed, steps = path.log_probs, path.committed, None  # (B, N, T); old is 0 where nothing was committed
+        if self.denoising_steps is not None and self.denoising_steps < path.num_steps:
+            steps = sample_steps(committed, self.denoising_steps)  # (B, S)
+            old, committed = select_steps(old, steps), select_steps(committed, steps)
         with self.denoiser_network_params.to_module(self.denoiser_network):
-            new = path_log_prob(self.denoiser_network.module, path, visual, per_token=True)  # (B, N, T)
-        old = path.log_probs  # (B, N, T), 0 where nothing was committed
-        committed = path.committed
+            new = path_log_prob(self.denoiser_network.module, path, visual, per_token=True, steps=steps)  # (B, N|S, T)
         if self.ratio_level == "token":
             log_ratio, valid = new - old, committed
         elif self.ratio_level == "step":

@@ -321,7 +321,7 @@ def make_loss(cfg: DictConfig, model: MMaDAModel):
         )
     p = cfg.loss.ppo
     return PathPPOLoss(model.denoiser, clip_epsilon=float(p.clip_epsilon), ratio_level=p.ratio_level,
-                       normalize_advantage=bool(p.normalize_advantage))
+                       normalize_advantage=bool(p.normalize_advantage), denoising_steps=p.denoising_steps)
 
 
 def make_optim(cfg: DictConfig, model: MMaDAModel):
