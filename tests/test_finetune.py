@@ -511,3 +511,20 @@ def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_de
             assert r["minibatches"] == 3 and len(r["cos_pairs_all"]) == 3 and -1 <= r["cos_pairs"] <= 1 and r["mean_norm"] > 0
     with pytest.raises(FileNotFoundError, match="no online buffer"):
         bench.main(["--pretrained", str(toy_pretrain_run), "--online", str(tmp_path), "--demos", str(pick_demos)])
+
+
+def test_replayed_steps_benchmark_measures_cost_and_fidelity(toy_pretrain_run, tmp_path):
+    spec = importlib.util.spec_from_file_location("path_ppo_steps", REPO / "benchmarks" / "path_ppo_steps.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    code = bench.main(["--pretrained", str(toy_pretrain_run), "--task", "PickCube-v1", "--decisions", "2", "--steps", "1",
+                       "--draws", "2", "--out", str(tmp_path)])
+    assert code == 0
+    result = json.loads((tmp_path / "path_ppo_steps.json").read_text())
+    (record,) = result["records"]
+    assert record["denoising_steps"] == 1 and record["num_steps"] > 1
+    assert -1 <= record["cos_to_full_min"] <= record["cos_to_full_mean"] <= 1 and record["norm_ratio_mean"] > 0
+    assert (tmp_path / "path_ppo_steps.png").exists() and "1 of" in (tmp_path / "path_ppo_steps.md").read_text()
+    with pytest.raises(SystemExit):  # as many replayed steps as the policy decodes: no subset
+        bench.main(["--pretrained", str(toy_pretrain_run), "--task", "PickCube-v1", "--decisions", "1",
+                    "--steps", str(record["num_steps"]), "--out", str(tmp_path)])

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -115,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
                     continue
                 cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every,
                               args.demos)
-                print(f"[compare] {task} {method} s{seed}: {' '.join(cmd[1:])}", flush=True)
+                print(f"[compare] {task} {method} s{seed}: {shlex.join(cmd[1:])}", flush=True)
                 proc = subprocess.run(cmd, cwd=ROOT)
                 if proc.returncode != 0:
                     print(f"[compare] {method} exited with {proc.returncode}; rerun the same command to resume it.")
