@@ -264,6 +264,9 @@ def evaluate(
         sample_temperature: MMaDA policies only: sample the tokens at this
             temperature instead of decoding greedily (the stochastic policy an
             online fine-tuning run collects with, ``collector.temperature``).
+            Every episode draws from torch's RNG seeded with its env seed, so a
+            sampled evaluation (or a Diffusion Policy's) repeats exactly; the
+            caller's RNG state is left as it was.
         max_episode_steps: episode length (``None``: the task registry's).
         control_mode: ManiSkill controller; must match the one the policy was trained in.
         image_size: checked against the policy's image size (``None``: take it).
@@ -311,11 +314,13 @@ def evaluate(
         limit = cfg.episode_steps  # None: ManiSkill's own TimeLimit ends the episode
         results, frames, first_episode = [], [], None
         decoding = ExplorationType.RANDOM if sample_temperature else ExplorationType.DETERMINISTIC
-        with set_exploration_type(decoding), torch.no_grad():
+        devices = list(range(torch.cuda.device_count()))
+        with set_exploration_type(decoding), torch.no_grad(), torch.random.fork_rng(devices=devices):
             penv.actor(penv.env.reset(seed=seeds[0]))  # warm-up: the first decode is not a steady-state latency
             start = time.perf_counter()
             bar = tqdm(seeds, desc=f"eval {task}", disable=not progress, unit="ep")
             for seed in bar:
+                torch.manual_seed(seed)  # sampled tokens (or a diffusion policy's noise) repeat with the episode
                 rollout = _run_episode(penv, seed, max_decisions=(limit or 100_000) + 1)
                 results.append(rollout.result)
                 if first_episode is None:

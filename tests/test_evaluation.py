@@ -109,11 +109,13 @@ def test_sampled_evaluation_decodes_with_sampling_at_the_given_temperature(model
     from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, is_greedy
     from mmada_rl.policy import MMaDAModel
 
-    calls, original = [], MaskedDiffusionSampler.sample
+    calls, decoded, original = [], [], MaskedDiffusionSampler.sample
 
     def recording(self, *args, greedy=None, **kwargs):
         calls.append((is_greedy(greedy), self.config.temperature))
-        return original(self, *args, greedy=greedy, **kwargs)
+        out = original(self, *args, greedy=greedy, **kwargs)
+        decoded.append(out.target_ids.clone())
+        return out
 
     monkeypatch.setattr(MaskedDiffusionSampler, "sample", recording)
     model = MMaDAModel.load(model_dir)
@@ -124,6 +126,16 @@ def test_sampled_evaluation_decodes_with_sampling_at_the_given_temperature(model
     sampled = evaluate(model, "PickCube-v1", 1, max_episode_steps=4, sample_temperature=2.0, progress=False)
     assert calls and all(not g and t == 2.0 for g, t in calls)
     assert sampled.sample_temperature == 2.0 and "sampled at T=2" in sampled.table()
+    # each episode's sampling is seeded by its env seed: the same seeds decode the same tokens, others do not
+    runs = []
+    for offset in (0, 0, 1):
+        decoded.clear()
+        torch.manual_seed(123 + len(runs))
+        before = torch.random.get_rng_state()
+        evaluate(model, "PickCube-v1", 1, seed_offset=offset, max_episode_steps=4, sample_temperature=2.0, progress=False)
+        assert torch.equal(torch.random.get_rng_state(), before)  # the caller's RNG is untouched
+        runs.append(torch.cat(decoded[1:]))  # after the warm-up decode
+    assert torch.equal(runs[0], runs[1]) and not torch.equal(runs[0], runs[2])
     assert model.sampler.config.temperature == own  # the policy's own sampler is restored
     with pytest.raises(ValueError, match="sample_temperature"):
         evaluate(model, "PickCube-v1", 1, sample_temperature=0.0)

@@ -432,18 +432,23 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
 
 @pytest.mark.parametrize("name, overrides, steps", [
     ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
-                   "loss.ppo.denoising_steps=2"], 40),
+                   "loss.ppo.denoising_steps=2", "eval.episodes=1", "eval.max_episode_steps=4", "eval.sample_temperature=1.0"],
+     40),
     ("filtered_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
-                                 "loss.rwr.normalize_weights=true"], 30),
+                                 "loss.rwr.normalize_weights=true", "eval.episodes=0"], 30),
 ])
 def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
-    """Episode-level advantages: PPO with group-relative returns; RWR imitating the successful rollouts."""
+    """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
+    the successful rollouts."""
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}", *overrides,
-                      "eval.episodes=0", "env.max_episode_steps=10", f"collector.total_env_steps={steps}")
+                      "env.max_episode_steps=10", f"collector.total_env_steps={steps}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"{steps} env steps" in proc.stdout and "0 updates" not in proc.stdout
     # the start-up line describes the updates this algorithm makes (PPO trains on fresh decisions only)
     assert ("epochs over each iteration's decisions" in proc.stdout) == (name == "ppo_group")
+    if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
+        history = json.loads((tmp_path / name / "eval_history.json").read_text())
+        assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):
@@ -484,6 +489,10 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     assert not any(a.startswith("demos.dir") for a in compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y"))
+    sampled = compare.command("mmada_ppo_group", "PickCube-v1", 0, 1000, out, "x", 5, 500, eval_sample_temperature=1.0)
+    assert "eval.sample_temperature=1.0" in sampled and "eval.sample_temperature=1.0" not in fresh
+    assert not any(a.startswith("eval.sample") for a in compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500,
+                                                                        eval_sample_temperature=1.0))
     import shutil
 
     shutil.copytree(rwr_run, out)  # a real (toy) fine-tuning run in the benchmark's layout

@@ -91,14 +91,17 @@ def run_dir(runs: Path, task: str, method: str, seed: int) -> Path:
 
 
 def command(method: str, task: str, seed: int, budget: int, out: Path, pretrained: str, eval_episodes: int,
-            eval_every: int, demos: str = "data/{task}") -> list[str]:
+            eval_every: int, demos: str = "data/{task}", eval_sample_temperature: float | None = None) -> list[str]:
     """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``
-    (both only used by our fine-tuning methods: the baselines read their recipe's own data directory)."""
+    (both only used by our fine-tuning methods: the baselines read their recipe's own data directory), and
+    ``eval_sample_temperature`` evaluates our methods' sampled (not greedy) decoding."""
     _, _, recipe, online = METHODS[method]
     cmd = [sys.executable, *recipe, f"env.task={task}", f"seed={seed}", f"run_dir={out}", f"eval.episodes={eval_episodes}"]
     if method.startswith("mmada"):
         cmd += [f"pretrained={pretrained.format(task=task, seed=seed)}", f"collector.total_env_steps={budget}",
                 f"eval.interval_env_steps={eval_every}", f"demos.dir={demos.format(task=task, seed=seed)}"]
+        if eval_sample_temperature is not None:
+            cmd.append(f"eval.sample_temperature={eval_sample_temperature}")
     elif online:
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
     if (out / "checkpoints").exists():
@@ -115,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
                     print(f"[compare] {task} {method} s{seed}: done already ({out})")
                     continue
                 cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every,
-                              args.demos)
+                              args.demos, args.eval_sample_temperature)
                 print(f"[compare] {task} {method} s{seed}: {shlex.join(cmd[1:])}", flush=True)
                 proc = subprocess.run(cmd, cwd=ROOT)
                 if proc.returncode != 0:
@@ -156,18 +159,21 @@ def report(args: argparse.Namespace) -> int:
             for s, h in histories.items():
                 steps = [r["env_steps"] for r in h]
                 succ = [r["success_once"] for r in h]
+                sampled = h[-1].get("sample_temperature") or 0.0  # greedy unless the run evaluated sampled decoding
+                decoding = f", sampled at T={sampled:g}" if sampled else ""
                 if online:
-                    ax.plot(steps, succ, marker="o", label=f"{label} ({s})")
+                    ax.plot(steps, succ, marker="o", label=f"{label} ({s}{decoding})")
                 else:
                     ax.axhline(succ[-1], linestyle="--", label=f"{label} ({s})")
                 first, last = h[0], h[-1]
                 ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
                       if last.get("success_once_ci_low") is not None else "")
-                rows.append([task, label, obs, s, f"{first['success_once']:.2f} @ {first['env_steps']}" if online else "-",
+                rows.append([task, label + decoding, obs, s,
+                             f"{first['success_once']:.2f} @ {first['env_steps']}" if online else "-",
                              f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
         ax.set_title(task)
         ax.set_xlabel("online env steps")
-        ax.set_ylabel("success_once (greedy, fixed eval seeds)")
+        ax.set_ylabel("success_once (fixed eval seeds; greedy unless marked)")
         ax.set_ylim(-0.02, 1.02)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
@@ -201,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--demos", default="data/{task}",
                    help="demonstration buffer our fine-tuning methods mix in ({task}, {seed} are filled in); it must "
                         "match the pretrained policy's camera, e.g. data/PushCube-v1-fov60 for a camera_fov=60 policy")
+    p.add_argument("--eval-sample-temperature", type=float, default=None,
+                   help="evaluate our fine-tuning methods with tokens sampled at this temperature, the stochastic policy "
+                        "they train (default: greedy decoding; the baselines always evaluate their own way)")
     p.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
     p.set_defaults(func=run)
     r = sub.add_parser("report", help="tables and curves from the existing runs")

@@ -23,7 +23,7 @@ the online rows are the successful rollouts: filtered self-imitation). Then:
 * ``algo=ppo``: :class:`~mmada_rl.objectives.PathPPOLoss` on the fresh batch,
   the ratio recomputed exactly from each chunk's stored decoding path.
 
-Evaluation (greedy, fixed seeds disjoint from training) runs every
+Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
 against env steps. Checkpoints (policy, value network, optimizers, counters,
 RNG) are atomic; the online buffer is saved beside them. If the env raises
@@ -70,11 +70,15 @@ BUFFER_DIR = "online_buffer"
 
 
 def run_eval(cfg: DictConfig, model, env_steps: int, updates: int, start: float) -> dict:
-    """Greedy evaluation with the model's own sampler (not the exploration one)."""
+    """Evaluation with the model's own sampler (not the exploration one): greedy, or sampled at
+    ``eval.sample_temperature``."""
+    temperature = None if cfg.eval.sample_temperature is None else float(cfg.eval.sample_temperature)
     result = evaluate(model, cfg.env.task, episodes=int(cfg.eval.episodes), execute_steps=cfg.collector.execute_steps,
-                      control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps, progress=False)
+                      control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
+                      sample_temperature=temperature, progress=False)
     return {
-        "env_steps": env_steps, "updates": updates, "success_once": result.success_once,
+        "env_steps": env_steps, "updates": updates, "sample_temperature": result.sample_temperature,
+        "success_once": result.success_once,
         "success_once_ci_low": result.success_once_ci_low, "success_once_ci_high": result.success_once_ci_high,
         "success_at_end": result.success_at_end, "episodes": result.episodes, "wall_s": time.perf_counter() - start,
     }
