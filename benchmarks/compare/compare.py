@@ -173,16 +173,16 @@ def report(args: argparse.Namespace) -> int:
                              f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
         ax.set_title(task)
         ax.set_xlabel("online env steps")
-        ax.set_ylabel("success_once (fixed eval seeds; greedy unless marked)")
+        ax.set_ylabel("success_once (greedy unless marked)")
         ax.set_ylim(-0.02, 1.02)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:  # below the curves: the method labels are long
+            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2))
     if not rows:
         print(f"[compare] no finished evaluations under {args.runs} for {args.task}; run `compare.py run` first.")
         return 1
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "compare.png", dpi=120)
+    fig.savefig(args.out / "compare.png", dpi=120, bbox_inches="tight")
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
