@@ -38,6 +38,13 @@ def write_results(name: str, payload: dict, markdown: str, directory: Path = RES
     return json_path, md_path
 
 
+def flat_gradient(params: list, grads: list) -> "torch.Tensor":
+    """One flat vector of the gradients of ``params`` (zeros where a gradient is ``None``)."""
+    import torch
+
+    return torch.cat([(torch.zeros_like(p) if g is None else g).reshape(-1) for p, g in zip(params, grads)])
+
+
 def markdown_table(header: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]

@@ -37,7 +37,7 @@ import torch
 from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, flat_gradient, markdown_table, write_results  # noqa: E402
 
 from mmada_rl.data import DemoBuffer, make_window_buffer  # noqa: E402
 from mmada_rl.evaluation import resolve_model_dir  # noqa: E402
@@ -69,7 +69,7 @@ def flat_grads(model: MMaDAModel, loss_module: MaskedDiffusionLoss, rows) -> dic
     out = {}
     for i, part in enumerate(PARTS):
         grads = torch.autograd.grad(losses[f"loss_{part}"], params, retain_graph=i < len(PARTS) - 1, allow_unused=True)
-        out[part] = torch.cat([(torch.zeros_like(p) if g is None else g).reshape(-1) for p, g in zip(params, grads)])
+        out[part] = flat_gradient(params, grads)
     return out
 
 

@@ -35,11 +35,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
-
-
-def flat_grad(params: list[torch.nn.Parameter]) -> torch.Tensor:
-    return torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
+from common import RESULTS, flat_gradient, markdown_table, write_results  # noqa: E402
 
 
 def timed_grad(loss_fn, batch, params) -> tuple[float, torch.Tensor]:
@@ -47,7 +43,7 @@ def timed_grad(loss_fn, batch, params) -> tuple[float, torch.Tensor]:
         p.grad = None
     start = time.perf_counter()
     loss_fn(batch)["loss_objective"].backward()
-    return time.perf_counter() - start, flat_grad(params)
+    return time.perf_counter() - start, flat_gradient(params, [p.grad for p in params])
 
 
 def sample_chunks(model, task: str, decisions: int, seed: int):
