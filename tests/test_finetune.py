@@ -488,7 +488,15 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "checkpoint.resume=true" not in fresh and "demos.dir=data/PickCube-v1" in fresh
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
-    assert not any(a.startswith("demos.dir") for a in compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y"))
+    bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")
+    assert "data.dir=y" in bc and not any(a.startswith("demos.dir") for a in bc)
+    narrow_demos = tmp_path / "demos_fov45"  # PPO from pixels sees through the camera of the shared demonstrations
+    narrow_demos.mkdir()
+    (narrow_demos / "metadata.json").write_text(json.dumps({"camera_fov": 45.0}))
+    assert "env.camera_fov=45" in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos))
+    assert not any(a.startswith(("env.camera_fov", "data.dir")) for a in compare.command(
+        "sac_rlpd_state", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos)))
+    assert not any(a.startswith("env.camera_fov") for a in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500))
     sampled = compare.command("mmada_ppo_group", "PickCube-v1", 0, 1000, out, "x", 5, 500, eval_sample_temperature=1.0)
     assert "eval.sample_temperature=1.0" in sampled and "eval.sample_temperature=1.0" not in fresh
     assert not any(a.startswith("eval.sample") for a in compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500,

@@ -8,6 +8,9 @@
     # a policy pretrained through a narrower camera mixes in the demonstrations seen through it
     python benchmarks/compare/compare.py run --task PushCube-v1 --methods mmada_ppo_group --pretrained runs/push_fov60_s{seed} \\
         --demos data/{task}-fov60 --runs runs/compare_fov60 --budget 8000 --eval-every 4000 --eval-episodes 50
+    # the baselines on the same demonstrations and camera (PPO from pixels takes the buffer's camera)
+    python benchmarks/compare/compare.py run --task PushCube-v1 --methods ppo_rgb bc --demos data/{task}-fov60 \
+        --runs runs/compare_fov60 --budget 24000 --eval-every 4000 --eval-episodes 50
     # tables and curves from whatever runs exist
     python benchmarks/compare/compare.py report --task PickCube-v1 PushCube-v1
 
@@ -92,21 +95,37 @@ def run_dir(runs: Path, task: str, method: str, seed: int) -> Path:
 
 def command(method: str, task: str, seed: int, budget: int, out: Path, pretrained: str, eval_episodes: int,
             eval_every: int, demos: str = "data/{task}", eval_sample_temperature: float | None = None) -> list[str]:
-    """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``
-    (both only used by our fine-tuning methods: the baselines read their recipe's own data directory), and
+    """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``.
+
+    ``pretrained`` is our fine-tuning methods' starting point. ``demos`` is the RGB demonstration buffer every
+    pixel-based method shares: our methods mix it in, the pixel imitation baselines train on it, and PPO from
+    pixels, which learns without demonstrations, is given the camera the buffer was recorded with, so every
+    method sees the same images. The state baselines keep their privileged-state demonstrations.
     ``eval_sample_temperature`` evaluates our methods' sampled (not greedy) decoding."""
-    _, _, recipe, online = METHODS[method]
+    _, obs, recipe, online = METHODS[method]
+    demos = demos.format(task=task, seed=seed)
     cmd = [sys.executable, *recipe, f"env.task={task}", f"seed={seed}", f"run_dir={out}", f"eval.episodes={eval_episodes}"]
     if method.startswith("mmada"):
         cmd += [f"pretrained={pretrained.format(task=task, seed=seed)}", f"collector.total_env_steps={budget}",
-                f"eval.interval_env_steps={eval_every}", f"demos.dir={demos.format(task=task, seed=seed)}"]
+                f"eval.interval_env_steps={eval_every}", f"demos.dir={demos}"]
         if eval_sample_temperature is not None:
             cmd.append(f"eval.sample_temperature={eval_sample_temperature}")
     elif online:
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
+        camera_fov = demos_camera_fov(ROOT / demos)
+        if obs == "rgb+proprio" and camera_fov is not None:
+            cmd.append(f"env.camera_fov={camera_fov:g}")
+    elif obs == "rgb+proprio":
+        cmd.append(f"data.dir={demos}")
     if (out / "checkpoints").exists():
         cmd.append("checkpoint.resume=true")
     return cmd
+
+
+def demos_camera_fov(demos: Path) -> float | None:
+    """The camera field of view a demonstration buffer was recorded with (None: the task's own, or no buffer)."""
+    meta = demos / "metadata.json"
+    return json.loads(meta.read_text()).get("camera_fov") if meta.exists() else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -205,8 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pretrained", default="runs/pretrain_{task}_s{seed}",
                    help="pretrained MMaDA-VLA run per task and seed ({task}, {seed} are filled in)")
     p.add_argument("--demos", default="data/{task}",
-                   help="demonstration buffer our fine-tuning methods mix in ({task}, {seed} are filled in); it must "
-                        "match the pretrained policy's camera, e.g. data/PushCube-v1-fov60 for a camera_fov=60 policy")
+                   help="the RGB demonstration buffer ({task}, {seed} are filled in): our fine-tuning methods mix it "
+                        "in, the pixel imitation baselines train on it, PPO from pixels gets its camera; it must match "
+                        "the pretrained policy's camera, e.g. data/PushCube-v1-fov60 for a camera_fov=60 policy")
     p.add_argument("--eval-sample-temperature", type=float, default=None,
                    help="evaluate our fine-tuning methods with tokens sampled at this temperature, the stochastic policy "
                         "they train (default: greedy decoding; the baselines always evaluate their own way)")
