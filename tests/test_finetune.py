@@ -508,6 +508,10 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results")]) == 0
     table = (tmp_path / "results" / "compare.md").read_text()
     assert "reward-weighted diffusion (ours)" in table and "| 30 |" in table
+    assert "at equal online env steps" in table
+    history = [{"env_steps": 0, "success_once": 0.2}, {"env_steps": 4135, "success_once": 0.5}]
+    assert compare.success_at(history, 4000) == 0.5 and compare.success_at(history, 0) == 0.2
+    assert compare.success_at(history, 8000) is None  # no evaluation within 10% of it
     assert (tmp_path / "results" / "compare.png").stat().st_size > 0
     payload = json.loads((tmp_path / "results" / "compare.json").read_text())
     assert payload["results"]["PickCube-v1"]["mmada_rwr"]["histories"]["s0"][-1]["env_steps"] == 30

@@ -159,6 +159,33 @@ def history_of(out: Path, online: bool) -> list[dict]:
     return []
 
 
+def success_at(history: list[dict], env_steps: int) -> float | None:
+    """``success_once`` of the evaluation taken nearest ``env_steps`` online env steps, within 10% of it
+    (evaluations fall after whole collection rounds, e.g. at 4135 for 4000); None when there is none."""
+    near = [r for r in history if abs(r["env_steps"] - env_steps) <= 0.1 * env_steps]
+    return min(near, key=lambda r: abs(r["env_steps"] - env_steps))["success_once"] if near else None
+
+
+def budget_table(results: dict, every: int) -> str:
+    """Mean ``success_once`` over seeds at equal online env steps (0, every, 2 * every, ...), one row per method;
+    a cell averaged over fewer seeds than the row has says how many. Demonstration-only methods use no env
+    steps: their one evaluation fills the row."""
+    top = max(r["env_steps"] for t in results.values() for m in t.values() for h in m["histories"].values() for r in h)
+    budgets = list(range(0, top + 1, every)) or [0]
+    rows = []
+    for task, methods in results.items():
+        for method, entry in methods.items():
+            online = METHODS[method][3]
+            cells = []
+            for b in budgets:
+                values = [success_at(h, b) if online else h[-1]["success_once"] for h in entry["histories"].values()]
+                values = [v for v in values if v is not None]
+                n = "" if len(values) == len(entry["histories"]) else f" ({len(values)})"
+                cells.append(f"{sum(values) / len(values):.2f}{n}" if values else "-")
+            rows.append([task, entry["label"], entry["observations"], len(entry["histories"]), *cells])
+    return markdown_table(["task", "method", "observations", "seeds", *(f"{b:,}" for b in budgets)], rows)
+
+
 def report(args: argparse.Namespace) -> int:
     import matplotlib
 
@@ -205,9 +232,12 @@ def report(args: argparse.Namespace) -> int:
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
+    budgets = budget_table(results, args.every)
     write_results("compare", {"runs": str(args.runs), "results": results},
-                  f"# Offline-to-online comparison\n\n{table}\n\n![curves](compare.png)\n", directory=args.out)
-    print(table)
+                  f"# Offline-to-online comparison\n\n{table}\n\n"
+                  f"## success_once at equal online env steps (mean over seeds)\n\n{budgets}\n\n"
+                  "![curves](compare.png)\n", directory=args.out)
+    print(table, budgets, sep="\n\n")
     return 0
 
 
@@ -236,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--task", nargs="+", default=["PickCube-v1"])
     r.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
     r.add_argument("--out", type=Path, default=RESULTS, help="where compare.{json,md,png} go")
+    r.add_argument("--every", type=int, default=5_000,
+                   help="env steps between the columns of the equal-budget table (use the runs' --eval-every)")
     r.set_defaults(func=report)
     args = parser.parse_args(argv)
     return args.func(args)
