@@ -505,6 +505,8 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
 
     shutil.copytree(rwr_run, out)  # a real (toy) fine-tuning run in the benchmark's layout
     assert "checkpoint.resume=true" in compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "x", 5, 500)
+    assert compare.finished(out, True, 30) and not compare.finished(out, True, 1000)  # a larger budget extends it
+    assert not compare.finished(runs / "absent", False, 0)
     assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results")]) == 0
     table = (tmp_path / "results" / "compare.md").read_text()
     assert "reward-weighted diffusion (ours)" in table and "| 30 |" in table

@@ -17,7 +17,8 @@
 Every method is one of the project's recipes run as a subprocess into
 ``--runs/{task}/{method}/s{seed}`` (default ``runs/compare``); a run directory
 that holds checkpoints but no ``final.json`` is resumed (``checkpoint.resume=true``),
-so an interrupted benchmark continues where it stopped. Each recipe evaluates on
+so an interrupted benchmark continues where it stopped, and so is a finished online
+run whose env steps fall short of a larger ``--budget`` (24k runs extend to 50k). Each recipe evaluates on
 the same fixed seeds (``1_000_000 + i``, disjoint from every training seed) and
 writes ``eval_history.json`` (``success_once`` against online env steps); the
 imitation baselines train on the demonstrations only and are drawn as a level
@@ -128,12 +129,21 @@ def demos_camera_fov(demos: Path) -> float | None:
     return json.loads(meta.read_text()).get("camera_fov") if meta.exists() else None
 
 
+def finished(out: Path, online: bool, budget: int) -> bool:
+    """Whether a run is complete: it wrote ``final.json`` and, when it interacts online, reached ``budget`` env
+    steps (a run finished at a smaller budget is resumed from its last checkpoint and continued to the new one)."""
+    final = out / "final.json"
+    if not final.exists():
+        return False
+    return not online or int(json.loads(final.read_text()).get("env_steps", 0)) >= budget
+
+
 def run(args: argparse.Namespace) -> int:
     for task in args.task:
         for seed in args.seeds:
             for method in args.methods:
                 out = run_dir(args.runs, task, method, seed)
-                if (out / "final.json").exists():
+                if finished(out, METHODS[method][3], args.budget):
                     print(f"[compare] {task} {method} s{seed}: done already ({out})")
                     continue
                 cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every,
