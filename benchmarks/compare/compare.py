@@ -176,24 +176,39 @@ def success_at(history: list[dict], env_steps: int) -> float | None:
     return min(near, key=lambda r: abs(r["env_steps"] - env_steps))["success_once"] if near else None
 
 
-def budget_table(results: dict, every: int) -> str:
-    """Mean ``success_once`` over seeds at equal online env steps (0, every, 2 * every, ...), one row per method;
-    a cell averaged over fewer seeds than the row has says how many. Demonstration-only methods use no env
-    steps: their one evaluation fills the row."""
+def mean_at(histories: dict[str, list[dict]], env_steps: int, online: bool) -> tuple[float | None, int]:
+    """Mean ``success_once`` over the seeds evaluated near ``env_steps`` (see :func:`success_at`), and how many
+    seeds that is. Demonstration-only methods use no env steps: their one evaluation counts at every budget."""
+    values = [success_at(h, env_steps) if online else h[-1]["success_once"] for h in histories.values()]
+    values = [v for v in values if v is not None]
+    return (sum(values) / len(values) if values else None), len(values)
+
+
+def budget_grid(results: dict, every: int) -> list[int]:
+    """0, every, 2 * every, ... up to the most env steps any run reached."""
     top = max(r["env_steps"] for t in results.values() for m in t.values() for h in m["histories"].values() for r in h)
-    budgets = list(range(0, top + 1, every)) or [0]
+    return list(range(0, top + 1, every))
+
+
+def budget_table(results: dict, budgets: list[int]) -> str:
+    """Mean ``success_once`` over seeds at equal online env steps, one row per method; a cell averaged over fewer
+    seeds than the row has says how many."""
     rows = []
     for task, methods in results.items():
         for method, entry in methods.items():
-            online = METHODS[method][3]
             cells = []
             for b in budgets:
-                values = [success_at(h, b) if online else h[-1]["success_once"] for h in entry["histories"].values()]
-                values = [v for v in values if v is not None]
-                n = "" if len(values) == len(entry["histories"]) else f" ({len(values)})"
-                cells.append(f"{sum(values) / len(values):.2f}{n}" if values else "-")
+                mean, n = mean_at(entry["histories"], b, METHODS[method][3])
+                more = "" if n == len(entry["histories"]) else f" ({n})"
+                cells.append(f"{mean:.2f}{more}" if mean is not None else "-")
             rows.append([task, entry["label"], entry["observations"], len(entry["histories"]), *cells])
     return markdown_table(["task", "method", "observations", "seeds", *(f"{b:,}" for b in budgets)], rows)
+
+
+def decoding_of(history: list[dict]) -> str:
+    """How a run's policy was evaluated: greedy (``""``) or sampled at a temperature."""
+    sampled = history[-1].get("sample_temperature") or 0.0
+    return f", sampled at T={sampled:g}" if sampled else ""
 
 
 def report(args: argparse.Namespace) -> int:
@@ -203,8 +218,7 @@ def report(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
 
     results, rows = {}, []
-    fig, axes = plt.subplots(1, len(args.task), figsize=(6 * len(args.task), 4), squeeze=False)
-    for ax, task in zip(axes[0], args.task):
+    for task in args.task:
         for method, (label, obs, _, online) in METHODS.items():
             seeds = sorted(p.name for p in (args.runs / task / method).glob("s*")) if (args.runs / task / method).exists() else []
             histories = {s: history_of(args.runs / task / method / s, online) for s in seeds}
@@ -213,41 +227,52 @@ def report(args: argparse.Namespace) -> int:
                 continue
             results.setdefault(task, {})[method] = {"label": label, "observations": obs, "histories": histories}
             for s, h in histories.items():
-                steps = [r["env_steps"] for r in h]
-                succ = [r["success_once"] for r in h]
-                sampled = h[-1].get("sample_temperature") or 0.0  # greedy unless the run evaluated sampled decoding
-                decoding = f", sampled at T={sampled:g}" if sampled else ""
-                if online:
-                    ax.plot(steps, succ, marker="o", label=f"{label} ({s}{decoding})")
-                else:
-                    ax.axhline(succ[-1], linestyle="--", label=f"{label} ({s})")
                 first, last = h[0], h[-1]
                 ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
                       if last.get("success_once_ci_low") is not None else "")
-                rows.append([task, label + decoding, obs, s,
+                rows.append([task, label + decoding_of(h), obs, s,
                              f"{first['success_once']:.2f} @ {first['env_steps']}" if online else "-",
                              f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
+    if not rows:
+        print(f"[compare] no finished evaluations under {args.runs} for {args.task}; run `compare.py run` first.")
+        return 1
+    budgets = budget_grid(results, args.every)
+    fig, axes = plt.subplots(1, len(args.task), figsize=(7 * len(args.task), 4.5), squeeze=False)
+    for ax, task in zip(axes[0], args.task):
+        for i, (method, entry) in enumerate(results.get(task, {}).items()):
+            color, online, n = f"C{i % 10}", METHODS[method][3], len(entry["histories"])
+            decoding = decoding_of(next(iter(entry["histories"].values())))
+            seen = "" if entry["observations"] == "rgb+proprio" else f", {entry['observations']}"
+            name = f"{entry['label']}{decoding}{seen} ({'mean of ' if n > 1 else ''}{', '.join(entry['histories'])})"
+            if not online:  # no env steps: a level line
+                ax.axhline(mean_at(entry["histories"], 0, False)[0], color=color, linestyle="--", label=name)
+                continue
+            if n > 1:  # each seed thin, their mean at the common budgets thick
+                for h in entry["histories"].values():
+                    ax.plot([r["env_steps"] for r in h], [r["success_once"] for r in h], color=color, alpha=0.3, lw=1)
+                points = [(b, mean_at(entry["histories"], b, True)) for b in budgets]
+                points = [(b, m) for b, (m, k) in points if k == n]
+            else:
+                points = [(r["env_steps"], r["success_once"]) for r in next(iter(entry["histories"].values()))]
+            ax.plot(*zip(*points), color=color, marker="o", lw=2, label=name)
         ax.set_title(task)
         ax.set_xlabel("online env steps")
         ax.set_ylabel("success_once (greedy unless marked)")
         ax.set_ylim(-0.02, 1.02)
         if ax.get_legend_handles_labels()[0]:  # below the curves: the method labels are long
-            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2))
-    if not rows:
-        print(f"[compare] no finished evaluations under {args.runs} for {args.task}; run `compare.py run` first.")
-        return 1
+            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.15))
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / "compare.png", dpi=120, bbox_inches="tight")
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
-    budgets = budget_table(results, args.every)
+    budget_rows = budget_table(results, budgets)
     write_results("compare", {"runs": str(args.runs), "results": results},
                   f"# Offline-to-online comparison\n\n{table}\n\n"
-                  f"## success_once at equal online env steps (mean over seeds)\n\n{budgets}\n\n"
+                  f"## success_once at equal online env steps (mean over seeds)\n\n{budget_rows}\n\n"
                   "![curves](compare.png)\n", directory=args.out)
-    print(table, budgets, sep="\n\n")
+    print(table, budget_rows, sep="\n\n")
     return 0
 
 
