@@ -507,10 +507,15 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "checkpoint.resume=true" in compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "x", 5, 500)
     assert compare.finished(out, True, 30) and not compare.finished(out, True, 1000)  # a larger budget extends it
     assert not compare.finished(runs / "absent", False, 0)
-    assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results")]) == 0
+    second = compare.run_dir(runs, "PickCube-v1", "mmada_rwr", 1)  # a second seed: the report averages them
+    shutil.copytree(rwr_run, second)
+    record = json.loads((second / "eval_history.json").read_text())
+    record[0]["success_once"] = 1.0 - record[0]["success_once"]  # so the mean differs from either seed
+    (second / "eval_history.json").write_text(json.dumps(record))
+    assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results"), "--every", "30"]) == 0
     table = (tmp_path / "results" / "compare.md").read_text()
     assert "reward-weighted diffusion (ours)" in table and "| 30 |" in table
-    assert "at equal online env steps" in table
+    assert "at equal online env steps" in table and "| 0.50 |" in table  # seeds at s and 1 - s at env step 0
     history = [{"env_steps": 0, "success_once": 0.2}, {"env_steps": 4135, "success_once": 0.5}]
     assert compare.success_at(history, 4000) == 0.5 and compare.success_at(history, 0) == 0.2
     assert compare.success_at(history, 8000) is None  # no evaluation within 10% of it
