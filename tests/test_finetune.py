@@ -494,6 +494,8 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     narrow_demos.mkdir()
     (narrow_demos / "metadata.json").write_text(json.dumps({"camera_fov": 45.0}))
     assert "env.camera_fov=45" in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos))
+    assert {f"data.dir={narrow_demos}", "env.camera_fov=45"} <= set(compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500,
+                                                                                    str(narrow_demos)))
     assert not any(a.startswith(("env.camera_fov", "data.dir")) for a in compare.command(
         "sac_rlpd_state", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos)))
     assert not any(a.startswith("env.camera_fov") for a in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500))

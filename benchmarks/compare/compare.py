@@ -8,7 +8,7 @@
     # a policy pretrained through a narrower camera mixes in the demonstrations seen through it
     python benchmarks/compare/compare.py run --task PushCube-v1 --methods mmada_ppo_group --pretrained runs/push_fov60_s{seed} \\
         --demos data/{task}-fov60 --runs runs/compare_fov60 --budget 8000 --eval-every 4000 --eval-episodes 50
-    # the baselines on the same demonstrations and camera (PPO from pixels takes the buffer's camera)
+    # the baselines on the same demonstrations and camera (the pixel baselines take the buffer's camera)
     python benchmarks/compare/compare.py run --task PushCube-v1 --methods ppo_rgb bc --demos data/{task}-fov60 \
         --runs runs/compare_fov60 --budget 24000 --eval-every 4000 --eval-episodes 50
     # tables and curves from whatever runs exist
@@ -99,9 +99,10 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
     """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``.
 
     ``pretrained`` is our fine-tuning methods' starting point. ``demos`` is the RGB demonstration buffer every
-    pixel-based method shares: our methods mix it in, the pixel imitation baselines train on it, and PPO from
-    pixels, which learns without demonstrations, is given the camera the buffer was recorded with, so every
-    method sees the same images. The state baselines keep their privileged-state demonstrations.
+    pixel-based method shares: our methods mix it in, the pixel imitation baselines train on it, and every pixel
+    baseline (PPO from pixels too, which learns without demonstrations) is given the camera the buffer was
+    recorded with, so every method sees the same images (ours take theirs from the pretrained policy, trained on
+    the same buffer). The state baselines keep their privileged-state demonstrations.
     ``eval_sample_temperature`` evaluates our methods' sampled (not greedy) decoding."""
     _, obs, recipe, online = METHODS[method]
     demos = demos.format(task=task, seed=seed)
@@ -113,11 +114,11 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
             cmd.append(f"eval.sample_temperature={eval_sample_temperature}")
     elif online:
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
-        camera_fov = demos_camera_fov(ROOT / demos)
-        if obs == "rgb+proprio" and camera_fov is not None:
-            cmd.append(f"env.camera_fov={camera_fov:g}")
     elif obs == "rgb+proprio":
         cmd.append(f"data.dir={demos}")
+    camera_fov = demos_camera_fov(ROOT / demos)
+    if not method.startswith("mmada") and obs == "rgb+proprio" and camera_fov is not None:
+        cmd.append(f"env.camera_fov={camera_fov:g}")  # ours take the camera from the pretrained policy
     if (out / "checkpoints").exists():
         cmd.append("checkpoint.resume=true")
     return cmd
@@ -290,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="pretrained MMaDA-VLA run per task and seed ({task}, {seed} are filled in)")
     p.add_argument("--demos", default="data/{task}",
                    help="the RGB demonstration buffer ({task}, {seed} are filled in): our fine-tuning methods mix it "
-                        "in, the pixel imitation baselines train on it, PPO from pixels gets its camera; it must match "
+                        "in, the pixel imitation baselines train on it, every pixel baseline gets its camera; it must match "
                         "the pretrained policy's camera, e.g. data/PushCube-v1-fov60 for a camera_fov=60 policy")
     p.add_argument("--eval-sample-temperature", type=float, default=None,
                    help="evaluate our fine-tuning methods with tokens sampled at this temperature, the stochastic policy "
