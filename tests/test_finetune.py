@@ -514,7 +514,7 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     record = json.loads((second / "eval_history.json").read_text())
     record[0]["success_once"] = 1.0 - record[0]["success_once"]  # so the mean differs from either seed
     (second / "eval_history.json").write_text(json.dumps(record))
-    assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results"), "--every", "30"]) == 0
+    assert compare.main(["report", "--runs", str(runs), "--out", str(tmp_path / "results"), "--at", "0", "30"]) == 0
     table = (tmp_path / "results" / "compare.md").read_text()
     assert "reward-weighted diffusion (ours)" in table and "| 30 |" in table
     assert "at equal online env steps" in table and "| 0.50 |" in table  # seeds at s and 1 - s at env step 0

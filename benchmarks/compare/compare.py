@@ -185,10 +185,11 @@ def mean_at(histories: dict[str, list[dict]], env_steps: int, online: bool) -> t
     return (sum(values) / len(values) if values else None), len(values)
 
 
-def budget_grid(results: dict, every: int) -> list[int]:
-    """0, every, 2 * every, ... up to the most env steps any run reached."""
+def budget_grid(results: dict, every: int = 5_000) -> list[int]:
+    """0, every, 2 * every, ... up to the most env steps any run reached (and that, when it lies off the grid)."""
     top = max(r["env_steps"] for t in results.values() for m in t.values() for h in m["histories"].values() for r in h)
-    return list(range(0, top + 1, every))
+    grid = list(range(0, top + 1, every))
+    return grid + [top] if top - grid[-1] > every / 4 else grid
 
 
 def budget_table(results: dict, budgets: list[int]) -> str:
@@ -237,7 +238,7 @@ def report(args: argparse.Namespace) -> int:
     if not rows:
         print(f"[compare] no finished evaluations under {args.runs} for {args.task}; run `compare.py run` first.")
         return 1
-    budgets = budget_grid(results, args.every)
+    budgets = sorted(args.at) if args.at else budget_grid(results)
     fig, axes = plt.subplots(1, len(args.task), figsize=(7 * len(args.task), 4.5), squeeze=False)
     for ax, task in zip(axes[0], args.task):
         for i, (method, entry) in enumerate(results.get(task, {}).items()):
@@ -302,8 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--task", nargs="+", default=["PickCube-v1"])
     r.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
     r.add_argument("--out", type=Path, default=RESULTS, help="where compare.{json,md,png} go")
-    r.add_argument("--every", type=int, default=5_000,
-                   help="env steps between the columns of the equal-budget table (use the runs' --eval-every)")
+    r.add_argument("--at", type=int, nargs="+", default=None,
+                   help="online env-step budgets of the equal-budget table and the mean curves (default: every 5000 "
+                        "up to the longest run; use the runs' evaluation points)")
     r.set_defaults(func=report)
     args = parser.parse_args(argv)
     return args.func(args)
