@@ -262,7 +262,7 @@ def report(args: argparse.Namespace) -> int:
         ax.set_ylabel("success_once (greedy unless marked)")
         ax.set_ylim(-0.02, 1.02)
         if ax.get_legend_handles_labels()[0]:  # below the curves: the method labels are long
-            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.15))
+            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.17))
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out / "compare.png", dpi=120, bbox_inches="tight")
