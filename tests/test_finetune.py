@@ -14,6 +14,7 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.windows import no_start_steps
 from mmada_rl.diffusion.path import path_log_prob, sample_steps, select_steps
 from mmada_rl.envs.maniskill import make_env
@@ -492,7 +493,8 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "data.dir=y" in bc and not any(a.startswith("demos.dir") for a in bc)
     narrow_demos = tmp_path / "demos_fov45"  # PPO from pixels sees through the camera of the shared demonstrations
     narrow_demos.mkdir()
-    (narrow_demos / "metadata.json").write_text(json.dumps({"camera_fov": 45.0}))
+    BufferMetadata(task="PickCube-v1", control_mode="pd_ee_delta_pose", obs_mode="rgb", image_size=64, action_dim=7,
+                   state_dim=29, camera_fov=45.0).save(narrow_demos)
     assert "env.camera_fov=45" in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos))
     assert {f"data.dir={narrow_demos}", "env.camera_fov=45"} <= set(compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500,
                                                                                     str(narrow_demos)))

@@ -116,9 +116,10 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
     elif obs == "rgb+proprio":
         cmd.append(f"data.dir={demos}")
-    camera_fov = demos_camera_fov(ROOT / demos)
-    if not method.startswith("mmada") and obs == "rgb+proprio" and camera_fov is not None:
-        cmd.append(f"env.camera_fov={camera_fov:g}")  # ours take the camera from the pretrained policy
+    if not method.startswith("mmada") and obs == "rgb+proprio":  # ours take the camera from the pretrained policy
+        camera_fov = demos_camera_fov(ROOT / demos)
+        if camera_fov is not None:
+            cmd.append(f"env.camera_fov={camera_fov:g}")
     if (out / "checkpoints").exists():
         cmd.append("checkpoint.resume=true")
     return cmd
@@ -126,8 +127,9 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
 
 def demos_camera_fov(demos: Path) -> float | None:
     """The camera field of view a demonstration buffer was recorded with (None: the task's own, or no buffer)."""
-    meta = demos / "metadata.json"
-    return json.loads(meta.read_text()).get("camera_fov") if meta.exists() else None
+    from mmada_rl.data.metadata import METADATA_FILE, BufferMetadata  # only the pixel baselines' commands need it
+
+    return BufferMetadata.load(demos).camera_fov if (demos / METADATA_FILE).exists() else None
 
 
 def finished(out: Path, online: bool, budget: int) -> bool:
