@@ -526,6 +526,19 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert (tmp_path / "results" / "compare.png").stat().st_size > 0
     payload = json.loads((tmp_path / "results" / "compare.json").read_text())
     assert payload["results"]["PickCube-v1"]["mmada_rwr"]["histories"]["s0"][-1]["env_steps"] == 30
+    # the training rollouts: the episodes the run's sampled policy ended while collecting, pooled per window
+    ended = compare.logged(out, "train/episodes")
+    assert ended and max(ended) <= 30
+    rollouts = payload["results"]["PickCube-v1"]["mmada_rwr"]["rollouts"]["s0"]
+    assert sum(n for _, n in rollouts) == sum(ended.values()) and all(0 <= k <= n for k, n in rollouts)
+    assert "Training rollouts" in table
+    scalars = tmp_path / "resumed_run" / "logs" / "scalars" / "train"  # interrupted after 30, resumed from 10
+    scalars.mkdir(parents=True)
+    (scalars / "episodes.csv").write_text("10,2\n20,2\n30,4\n20,1\n30,2\n40,2\n")
+    (scalars / "success_rate.csv").write_text("10,0.5\n20,1.0\n30,0.25\n20,1.0\n30,0.5\n40,0.0\n")
+    assert compare.logged(tmp_path / "resumed_run", "train/episodes") == {10: 2, 20: 1, 30: 2, 40: 2}
+    assert compare.training_rollouts(tmp_path / "resumed_run", 20) == [(2, 3), (1, 4)]
+    assert compare.training_rollouts(tmp_path / "absent", 20) == []
 
 
 def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_demos, tmp_path):

@@ -24,7 +24,10 @@ writes ``eval_history.json`` (``success_once`` against online env steps); the
 imitation baselines train on the demonstrations only and are drawn as a level
 line at env step 0.
 
-``report`` writes ``benchmarks/results/compare.{json,md,png}``.
+``report`` writes ``benchmarks/results/compare.{json,md,png}``: each run's first and last evaluation, the mean
+``success_once`` over seeds at equal online env steps (``--at``), and, for our fine-tuning runs, the successes of
+the episodes their sampled policy finished while collecting, per ``--window`` env steps (the evaluations decode
+greedily, so this is the one measure of the stochastic policy that fine-tuning trains, at no extra cost).
 """
 from __future__ import annotations
 
@@ -209,6 +212,47 @@ def budget_table(results: dict, budgets: list[int]) -> str:
     return markdown_table(["task", "method", "observations", "seeds", *(f"{b:,}" for b in budgets)], rows)
 
 
+def logged(out: Path, name: str) -> dict[int, float]:
+    """One scalar a recipe logged (TorchRL's CSV logger: ``logs/scalars/{name}.csv``, rows ``env_steps,value``), by
+    env step. A resumed run logs again the iterations after its last checkpoint: the later row of a step wins, and
+    rows a restart overtook (logged before it, at steps it reached again) are dropped."""
+    path = out / "logs" / "scalars" / f"{name}.csv"
+    rows: list[tuple[int, float]] = []
+    for line in path.read_text().splitlines() if path.exists() else []:
+        step, value = line.split(",")
+        while rows and rows[-1][0] >= int(step):
+            rows.pop()
+        rows.append((int(step), float(value)))
+    return dict(rows)
+
+
+def training_rollouts(out: Path, window: int) -> list[tuple[int, int]]:
+    """(successes, episodes) of the episodes a run's acting policy finished while it collected, one pair per window
+    of ``window`` online env steps (a batch counts in the window its last env step falls in); empty for runs that do
+    not log how many episodes each batch ended (only our fine-tuning recipe does). For our methods this is the
+    sampled policy that fine-tuning trains, where the evaluations decode greedily."""
+    rates, counts = logged(out, "train/success_rate"), logged(out, "train/episodes")
+    if not counts:
+        return []
+    windows = [[0, 0] for _ in range((max(counts) - 1) // window + 1)]
+    for step, n in counts.items():
+        windows[(step - 1) // window][0] += round(rates[step] * n)
+        windows[(step - 1) // window][1] += int(n)
+    return [(k, n) for k, n in windows]
+
+
+def rollouts_table(results: dict, window: int) -> str:
+    """Successes / episodes of the training rollouts per window of env steps, one row per run that logs them."""
+    rows = [[task, entry["label"], seed, *(f"{k}/{n}" for k, n in entry["rollouts"][seed])]
+            for task, methods in results.items() for entry in methods.values() for seed in entry.get("rollouts", {})]
+    if not rows:
+        return "(no run logged its training episodes)"
+    width = max(len(r) for r in rows)
+    rows = [r + [""] * (width - len(r)) for r in rows]
+    return markdown_table(["task", "method", "seed", *(f"{i * window:,}–{(i + 1) * window:,}" for i in range(width - 3))],
+                          rows)
+
+
 def decoding_of(history: list[dict]) -> str:
     """How a run's policy was evaluated: greedy (``""``) or sampled at a temperature."""
     sampled = history[-1].get("sample_temperature") or 0.0
@@ -230,6 +274,9 @@ def report(args: argparse.Namespace) -> int:
             if not histories:
                 continue
             results.setdefault(task, {})[method] = {"label": label, "observations": obs, "histories": histories}
+            rollouts = {s: training_rollouts(args.runs / task / method / s, args.window) for s in histories}
+            if any(rollouts.values()):
+                results[task][method]["rollouts"] = {s: r for s, r in rollouts.items() if r}
             for s, h in histories.items():
                 first, last = h[0], h[-1]
                 ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
@@ -271,12 +318,15 @@ def report(args: argparse.Namespace) -> int:
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
-    budget_rows = budget_table(results, budgets)
-    write_results("compare", {"runs": str(args.runs), "results": results},
+    budget_rows, rollout_rows = budget_table(results, budgets), rollouts_table(results, args.window)
+    write_results("compare", {"runs": str(args.runs), "window": args.window, "results": results},
                   f"# Offline-to-online comparison\n\n{table}\n\n"
                   f"## success_once at equal online env steps (mean over seeds)\n\n{budget_rows}\n\n"
+                  f"## Training rollouts: successes / episodes the acting policy finished, per {args.window:,} env steps\n\n"
+                  "Our methods act with sampled tokens (the policy fine-tuning trains) while the evaluations above decode "
+                  f"greedily.\n\n{rollout_rows}\n\n"
                   "![curves](compare.png)\n", directory=args.out)
-    print(table, budget_rows, sep="\n\n")
+    print(table, budget_rows, rollout_rows, sep="\n\n")
     return 0
 
 
@@ -308,6 +358,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--at", type=int, nargs="+", default=None,
                    help="online env-step budgets of the equal-budget table and the mean curves (default: every 5000 "
                         "up to the longest run; use the runs' evaluation points)")
+    r.add_argument("--window", type=int, default=4_000,
+                   help="env steps per window of the training-rollout table (successes / episodes the acting policy "
+                        "finished while collecting)")
     r.set_defaults(func=report)
     args = parser.parse_args(argv)
     return args.func(args)
