@@ -539,6 +539,8 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert compare.logged(tmp_path / "resumed_run", "train/episodes") == {10: 2, 20: 1, 30: 2, 40: 2}
     assert compare.training_rollouts(tmp_path / "resumed_run", 20) == [(2, 3), (1, 4)]
     assert compare.training_rollouts(tmp_path / "absent", 20) == []
+    with pytest.raises(SystemExit):
+        compare.main(["report", "--runs", str(runs), "--window", "0"])
 
 
 def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_demos, tmp_path):

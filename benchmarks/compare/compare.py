@@ -363,6 +363,8 @@ def main(argv: list[str] | None = None) -> int:
                         "finished while collecting)")
     r.set_defaults(func=report)
     args = parser.parse_args(argv)
+    if args.command == "report" and args.window < 1:
+        parser.error(f"--window must be >= 1 env step, got {args.window}.")
     return args.func(args)
 
 
