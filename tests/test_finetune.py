@@ -433,7 +433,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
 
 @pytest.mark.parametrize("name, overrides, steps", [
     ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
-                   "loss.ppo.denoising_steps=2", "eval.episodes=1", "eval.max_episode_steps=4", "eval.sample_temperature=1.0"],
+                   "loss.ppo.denoising_steps=2", "eval.episodes=1", "eval.max_episode_steps=4", "eval.sample_temperature=1.0",
+                   "loss.ppo.demo_coef=0.5"],
      40),
     ("filtered_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
                                  "loss.rwr.normalize_weights=true", "eval.episodes=0"], 30),
@@ -450,6 +451,10 @@ def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, 
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
         history = json.loads((tmp_path / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
+        # the anchor: every PPO minibatch also scored the demonstrations' denoising loss (half the toy batch of 8)
+        assert "each with 4 demo windows (demo_coef 0.5)" in proc.stdout
+        anchor = (tmp_path / name / "logs" / "scalars" / "train" / "loss_demo_action.csv").read_text().splitlines()
+        assert anchor and all(float(line.split(",")[1]) > 0 for line in anchor)
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):
@@ -472,6 +477,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["demos.ratio=1.5"], "demos.ratio must lie in [0, 1]"),
     (["demos.ratio=1.0", "algo=ppo"], "needs algo=rwr"),
     (["algo=ppo", "loss.ppo.ratio_level=path", "loss.ppo.denoising_steps=2"], "the path ratio needs every step"),
+    (["algo=ppo", "loss.ppo.demo_coef=1.0", "demos.ratio=0"], "raise demos.ratio"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -46,6 +46,9 @@ from common import RESULTS, markdown_table, write_results  # noqa: E402
 _RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
         "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
         "collector.temperature=0.5"]
+#: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
+_PPO_GROUP = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
+              "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
 #: the privileged-state demonstrations (where the online baselines' recipe collects them)
 _STATE_DEMOS = ["env.obs_mode=state", "data.dir=data/state/${env.task}"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
@@ -68,13 +71,14 @@ METHODS = {
     "mmada_ppo": ("MMaDA-VLA + path-likelihood PPO (ours)", "rgb+proprio",
                   ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo"], True),
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
-                        ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
-                         "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"], True),
+                        _PPO_GROUP, True),
     "mmada_ppo_group_2steps": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 denoising "
-                               "steps replayed per update (ours)", "rgb+proprio",
-                               ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
-                                "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5",
-                                "loss.ppo.denoising_steps=2"], True),
+                               "steps replayed per update (ours)", "rgb+proprio", [*_PPO_GROUP, "loss.ppo.denoising_steps=2"],
+                               True),
+    "mmada_ppo_group_2steps_demos": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 "
+                                     "denoising steps replayed, the demonstrations' denoising loss in every minibatch "
+                                     "(ours)", "rgb+proprio",
+                                     [*_PPO_GROUP, "loss.ppo.denoising_steps=2", "loss.ppo.demo_coef=1.0"], True),
     "ppo_rgb": ("PPO from scratch", "rgb+proprio",
                 ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=ppo"], True),
     "sac_rlpd_state": ("SAC + demos (RLPD)", "privileged state (reference)",

@@ -21,7 +21,9 @@ the online rows are the successful rollouts: filtered self-imitation). Then:
   :class:`~mmada_rl.objectives.RewardWeightedDiffusionLoss` (advantage-weighted
   action tokens, plain goal-image denoising, optional KL to the pretrained policy);
 * ``algo=ppo``: :class:`~mmada_rl.objectives.PathPPOLoss` on the fresh batch,
-  the ratio recomputed exactly from each chunk's stored decoding path.
+  the ratio recomputed exactly from each chunk's stored decoding path; with
+  ``loss.ppo.demo_coef > 0`` every minibatch adds that times the masked-diffusion
+  loss on ``demos.ratio x replay_buffer.batch_size`` demonstration windows.
 
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
@@ -51,6 +53,7 @@ from utils import (
     exploration_sampler,
     load_pretrained,
     make_collector,
+    make_demo_anchor,
     make_demo_windows,
     make_episode_groups,
     make_gae,
@@ -121,6 +124,7 @@ def main(cfg: DictConfig) -> None:
     gae = make_gae(cfg, value_op, model) if cfg.advantage.estimator == "gae" else None
     groups = make_episode_groups(cfg)
     loss_module = make_loss(cfg, model)
+    demo_anchor = make_demo_anchor(cfg, model)
     optimizer = make_optim(cfg, model)
     online = make_online_buffer(cfg)
     demo_windows = make_demo_windows(cfg, demos, model)
@@ -158,7 +162,8 @@ def main(cfg: DictConfig) -> None:
         history.append(run_eval(cfg, model, 0, 0, start))
         print(f"{PREFIX} pretrained policy: success_once {history[-1]['success_once']:.2f} over {history[-1]['episodes']} episodes")
     updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
-                    f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}")
+                    f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}"
+                    + (f", each with {n_demo} demo windows (demo_coef {cfg.loss.ppo.demo_coef})" if demo_anchor is not None else ""))
     print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; "
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps")
 
@@ -217,6 +222,9 @@ def main(cfg: DictConfig) -> None:
                 for _ in range(int(cfg.loss.ppo.epochs)):
                     for idx in torch.randperm(rows.shape[0]).split(size):
                         losses = loss_module(rows[idx])
+                        if demo_anchor is not None:  # the demonstrations' denoising loss, scaled by loss.ppo.demo_coef
+                            demo = demo_anchor(mixed_batch(model, None, demo_windows))
+                            losses.update({"loss_demo_action": demo["loss_action"], "loss_demo_goal": demo["loss_goal"]})
                         metrics["train/grad_norm"] = gradient_step(cfg, model, optimizer, losses)
                         updates += 1
             if losses is not None:

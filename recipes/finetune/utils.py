@@ -38,7 +38,7 @@ from mmada_rl.keys import (
     STEP_KEY,
     VALUE_TARGET_KEY,
 )
-from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
+from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.advantages import group_relative_advantages
 from mmada_rl.policy import MMaDAActor, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
@@ -66,6 +66,11 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"demos.ratio must lie in [0, 1], got {cfg.demos.ratio!r}.")
     if float(cfg.demos.ratio) == 1.0 and cfg.algo != "rwr":
         raise ValueError("demos.ratio=1 (updates on demonstrations only, the no-RL control) needs algo=rwr.")
+    if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) < 0:
+        raise ValueError(f"loss.ppo.demo_coef must be >= 0, got {cfg.loss.ppo.demo_coef!r}.")
+    if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) > 0 and split_batch(cfg)[1] == 0:
+        raise ValueError("loss.ppo.demo_coef > 0 draws demos.ratio x replay_buffer.batch_size demonstration windows per "
+                         "minibatch; with demos.ratio=0 that is none: raise demos.ratio.")
     last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
     if last > EVAL_SEED_BASE:
         raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
@@ -322,6 +327,17 @@ def make_loss(cfg: DictConfig, model: MMaDAModel):
     p = cfg.loss.ppo
     return PathPPOLoss(model.denoiser, clip_epsilon=float(p.clip_epsilon), ratio_level=p.ratio_level,
                        normalize_advantage=bool(p.normalize_advantage), denoising_steps=p.denoising_steps)
+
+
+def make_demo_anchor(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss | None:
+    """PPO's anchor to the demonstrations: the plain masked-diffusion loss (action and goal tokens), scaled by
+    ``loss.ppo.demo_coef``, on demonstration windows added to every PPO minibatch; None for RWR (its batches mix the
+    demonstrations in already) or when the coefficient is 0."""
+    coef = float(cfg.loss.ppo.demo_coef) if cfg.algo == "ppo" else 0.0
+    if coef == 0:
+        return None
+    return MaskedDiffusionLoss(model.denoiser, schedule=cfg.loss.schedule, action_weight=coef,
+                               goal_weight=coef * float(cfg.loss.goal_weight))
 
 
 def make_optim(cfg: DictConfig, model: MMaDAModel):
