@@ -41,6 +41,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import RESULTS, markdown_table, write_results  # noqa: E402
+from pretraining import read_scalar  # noqa: E402
 
 #: filtered self-imitation: sparse reward, episode returns as advantages, binary weights
 _RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
@@ -217,16 +218,14 @@ def budget_table(results: dict, budgets: list[int]) -> str:
 
 
 def logged(out: Path, name: str) -> dict[int, float]:
-    """One scalar a recipe logged (TorchRL's CSV logger: ``logs/scalars/{name}.csv``, rows ``env_steps,value``), by
-    env step. A resumed run logs again the iterations after its last checkpoint: the later row of a step wins, and
+    """One scalar a recipe logged (:func:`pretraining.read_scalar`; a fine-tuning run logs by env step), by env
+    step. A resumed run logs again the iterations after its last checkpoint: the later row of a step wins, and
     rows a restart overtook (logged before it, at steps it reached again) are dropped."""
-    path = out / "logs" / "scalars" / f"{name}.csv"
     rows: list[tuple[int, float]] = []
-    for line in path.read_text().splitlines() if path.exists() else []:
-        step, value = line.split(",")
-        while rows and rows[-1][0] >= int(step):
+    for step, value in read_scalar(out, name):
+        while rows and rows[-1][0] >= step:
             rows.pop()
-        rows.append((int(step), float(value)))
+        rows.append((step, value))
     return dict(rows)
 
 
