@@ -455,6 +455,9 @@ def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, 
         assert "each with 4 demo windows (demo_coef 0.5)" in proc.stdout
         anchor = (tmp_path / name / "logs" / "scalars" / "train" / "loss_demo_action.csv").read_text().splitlines()
         assert anchor and all(float(line.split(",")[1]) > 0 for line in anchor)
+        # PPO's diagnostics are logged once per iteration, as means over its gradient steps
+        clip = (tmp_path / name / "logs" / "scalars" / "train" / "clip_fraction.csv").read_text().splitlines()
+        assert clip and all(0.0 <= float(line.split(",")[1]) <= 1.0 for line in clip)
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):

@@ -112,6 +112,10 @@ def gradient_step(cfg, model, optimizer, losses) -> float:
     return float(grad_norm)
 
 
+def logged_step(losses, grad_norm: float) -> dict[str, float]:
+    return {**{k: float(v.detach()) for k, v in losses.items()}, "grad_norm": grad_norm}
+
+
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
     check_config(cfg)
@@ -208,14 +212,14 @@ def main(cfg: DictConfig) -> None:
                 if gae is not None:
                     metrics["train/value_loss"] = update_value(cfg, value_op, value_optim, rows)
 
-            t1, losses = time.perf_counter(), None
+            t1, stepped = time.perf_counter(), []  # each gradient step's losses and grad norm, averaged for the log
             if cfg.algo == "rwr":
                 if rows is not None:
                     online.extend(rows)
                 model.train()
                 for _ in range(int(cfg.optim.updates_per_batch) if len(online) or not n_online else 0):
                     losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
-                    metrics["train/grad_norm"] = gradient_step(cfg, model, optimizer, losses)
+                    stepped.append(logged_step(losses, gradient_step(cfg, model, optimizer, losses)))
                     updates += 1
             elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped
                 size = max(1, min(int(cfg.replay_buffer.batch_size), rows.shape[0]))
@@ -225,10 +229,10 @@ def main(cfg: DictConfig) -> None:
                         if demo_anchor is not None:  # the demonstrations' denoising loss, scaled by loss.ppo.demo_coef
                             demo = demo_anchor(mixed_batch(model, None, demo_windows))
                             losses.update({"loss_demo_action": demo["loss_action"], "loss_demo_goal": demo["loss_goal"]})
-                        metrics["train/grad_norm"] = gradient_step(cfg, model, optimizer, losses)
+                        stepped.append(logged_step(losses, gradient_step(cfg, model, optimizer, losses)))
                         updates += 1
-            if losses is not None:
-                metrics.update({f"train/{k}": float(v.detach()) for k, v in losses.items()})
+            if stepped:  # means over the iteration's gradient steps (PPO's clip fraction and KL grow over its epochs)
+                metrics.update({f"train/{k}": sum(s[k] for s in stepped) / len(stepped) for k in stepped[0]})
             metrics["time/update_s"] = time.perf_counter() - t1
             iteration += 1
             metrics.update({"train/env_steps": env_steps, "train/updates": updates})
