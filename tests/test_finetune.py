@@ -552,6 +552,22 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
         compare.main(["report", "--runs", str(runs), "--window", "0"])
 
 
+def test_comparison_help_lists_every_method_with_its_label(capsys):
+    spec = importlib.util.spec_from_file_location("compare", REPO / "benchmarks" / "compare" / "compare.py")
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    with pytest.raises(SystemExit):
+        compare.main(["run", "--help"])
+    text = capsys.readouterr().out
+    assert "--methods METHOD [METHOD ...]" in text
+    listed = text.split("methods:\n", 1)[1].splitlines()
+    assert [line.split()[0] for line in listed if line.strip()] == list(compare.METHODS)
+    assert "SAC + demos (RLPD) [privileged state (reference)]" in text
+    with pytest.raises(SystemExit):
+        compare.main(["run", "--methods", "no_such_method"])
+    assert "invalid choice: 'no_such_method'" in capsys.readouterr().err
+
+
 def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
     spec = importlib.util.spec_from_file_location("finetune_gradients", REPO / "benchmarks" / "finetune_gradients.py")
     bench = importlib.util.module_from_spec(spec)

@@ -341,9 +341,12 @@ def report(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("run", help="run (or resume) the methods")
+    methods = "\n".join(f"  {name:<32} {label} [{obs}]" for name, (label, obs, _, _) in METHODS.items())
+    p = sub.add_parser("run", help="run (or resume) the methods", epilog=f"methods:\n{methods}",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--task", nargs="+", default=["PickCube-v1"])
-    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS), metavar="METHOD",
+                   help="the methods to run (default: every one; listed below)")
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     p.add_argument("--budget", type=int, default=50_000, help="online env steps per run")
     p.add_argument("--eval-every", type=int, default=5_000, help="env steps between evaluations")
