@@ -291,6 +291,35 @@ def test_path_ppo_ratio_is_one_at_unchanged_parameters_and_an_update_raises_good
         PathPPOLoss(net, ratio_level="path", denoising_steps=2)
 
 
+def test_path_ppo_on_the_action_tokens_alone_ignores_the_goal_commits(model, sampled_chunks):
+    import copy
+
+    rollout = sampled_chunks.clone()
+    rollout.set(ADVANTAGE_KEY, torch.tensor([1.0, -1.0]))
+    net = copy.deepcopy(model.denoiser).eval()
+    layout = net.layout
+    is_action = torch.isin(layout.target_positions, layout.action_positions)  # (T,)
+    path = rollout[DECODING_PATH_KEY]
+    assert (path.committed & ~is_action).any() and (path.committed & is_action).any()  # goal and action commits
+    with torch.no_grad():  # an update has moved the policy: ratios differ from 1
+        for p in net.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    actions_only = PathPPOLoss(net, ratio_level="step", tokens="action")(rollout)
+    # the same objective on "all" tokens of a path whose goal commits are erased
+    erased = rollout.clone()
+    erased_path = erased[DECODING_PATH_KEY]
+    erased_path.log_probs = torch.where(erased_path.committed & is_action, erased_path.log_probs, 0.0)
+    erased_path.committed = erased_path.committed & is_action
+    erased.set(DECODING_PATH_KEY, erased_path)
+    reference = PathPPOLoss(net, ratio_level="step", tokens="all")(erased)
+    everything = PathPPOLoss(net, ratio_level="step", tokens="all")(rollout)
+    for key in ("loss_objective", "approx_kl", "ratio_mean"):
+        torch.testing.assert_close(actions_only[key], reference[key])
+    assert not torch.isclose(actions_only["approx_kl"], everything["approx_kl"])
+    with pytest.raises(ValueError, match="tokens"):
+        PathPPOLoss(net, tokens="goal")
+
+
 def test_replaying_some_decoding_steps_scores_them_exactly(model, sampled_chunks):
     path = sampled_chunks[DECODING_PATH_KEY].reshape(-1)
     num = path.num_steps
@@ -434,7 +463,7 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
 @pytest.mark.parametrize("name, overrides, steps", [
     ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
                    "loss.ppo.denoising_steps=2", "eval.episodes=1", "eval.max_episode_steps=4", "eval.sample_temperature=1.0",
-                   "loss.ppo.demo_coef=0.5"],
+                   "loss.ppo.demo_coef=0.5", "loss.ppo.tokens=action"],
      40),
     ("filtered_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
                                  "loss.rwr.normalize_weights=true", "eval.episodes=0"], 30),

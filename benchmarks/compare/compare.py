@@ -85,6 +85,10 @@ METHODS = {
                                        "update in minibatches of 64 (ours)", "rgb+proprio",
                                        [*_PPO_GROUP, "loss.ppo.denoising_steps=2", "collector.decisions_per_batch=160",
                                         "replay_buffer.batch_size=64", "checkpoint.interval=2"], True),
+    "mmada_ppo_group_2steps_actions": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 "
+                                       "denoising steps replayed, the action tokens alone in the ratio (ours)",
+                                       "rgb+proprio", [*_PPO_GROUP, "loss.ppo.denoising_steps=2", "loss.ppo.tokens=action"],
+                                       True),
     "ppo_rgb": ("PPO from scratch", "rgb+proprio",
                 ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=ppo"], True),
     "sac_rlpd_state": ("SAC + demos (RLPD)", "privileged state (reference)",

@@ -18,6 +18,14 @@ Replaying a path costs one denoiser forward pass per decoding step. With
 path, drawn uniformly among the steps that committed a token: the step- and
 token-level objectives are means over steps, so this is an unbiased estimate at
 ``S / N`` of the cost (DPPO likewise fine-tunes a subset of the denoising steps).
+
+The decoder commits goal-image and action tokens along one path, so by default
+both enter the ratio (``tokens="all"``). With ``tokens="action"`` only the
+committed action tokens are scored: the goal image stays a plan the actions are
+conditioned on (their recorded inputs include it) but PPO does not push its
+tokens, as reward-weighted fine-tuning leaves the goal tokens to the plain
+denoising loss. With a 64-token goal and a 35-token chunk, the goal tokens are
+most of each step's ratio otherwise.
 """
 from __future__ import annotations
 
@@ -37,6 +45,7 @@ from mmada_rl.keys import ADVANTAGE_KEY, VLA_ACTION_KEY
 __all__ = ["PathPPOLoss"]
 
 RATIO_LEVELS = ("step", "path", "token")
+SCORED_TOKENS = ("all", "action")
 
 
 class PathPPOLoss(LossModule):
@@ -56,6 +65,7 @@ class PathPPOLoss(LossModule):
         denoising_steps: replay this many decoding steps of each path per call
             (drawn afresh each call); ``None``: all of them. Not with ``ratio_level="path"``,
             whose ratio is the product over every step.
+        tokens: ``"all"`` (goal-image and action tokens) or ``"action"`` (the action tokens only; module docstring).
 
     Returns ``loss_objective`` and diagnostics ``clip_fraction``, ``approx_kl``
     (mean of ``old - new`` log-probability per ratio unit) and ``ratio_mean``.
@@ -99,7 +109,10 @@ class PathPPOLoss(LossModule):
         ratio_level: str = "step",
         normalize_advantage: bool = False,
         denoising_steps: int | None = None,
+        tokens: str = "all",
     ) -> None:
+        if tokens not in SCORED_TOKENS:
+            raise ValueError(f"tokens must be one of {SCORED_TOKENS}, got {tokens!r}.")
         if ratio_level not in RATIO_LEVELS:
             raise ValueError(f"ratio_level must be one of {RATIO_LEVELS}, got {ratio_level!r}.")
         if denoising_steps is not None and (int(denoising_steps) < 1 or ratio_level == "path"):
@@ -115,6 +128,11 @@ class PathPPOLoss(LossModule):
         self.clip_epsilon, self.ratio_level = float(clip_epsilon), ratio_level
         self.normalize_advantage = bool(normalize_advantage)
         self.denoising_steps = None if denoising_steps is None else int(denoising_steps)
+        self.tokens = tokens
+        layout = denoiser.module.layout
+        scored = torch.isin(layout.target_positions, layout.action_positions) if tokens == "action" else \
+            torch.ones(layout.target_positions.numel(), dtype=torch.bool)
+        self.register_buffer("scored_targets", scored)  # (T,) the target columns that enter the ratio
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -138,12 +156,14 @@ class PathPPOLoss(LossModule):
         if self.cross_attention:
             visual = tensordict.get(self.tensor_keys.visual)
             visual = self.denoiser_network.module.flat_visual(visual, path.shape[0])
-        old, committed, steps = path.log_probs, path.committed, None  # (B, N, T); old is 0 where nothing was committed
+        committed, steps = path.committed & self.scored_targets, None  # (B, N, T)
+        old = torch.where(committed, path.log_probs, torch.zeros_like(path.log_probs))
         if self.denoising_steps is not None and self.denoising_steps < path.num_steps:
             steps = sample_steps(committed, self.denoising_steps)  # (B, S)
             old, committed = select_steps(old, steps), select_steps(committed, steps)
         with self.denoiser_network_params.to_module(self.denoiser_network):
             new = path_log_prob(self.denoiser_network.module, path, visual, per_token=True, steps=steps)  # (B, N|S, T)
+        new = torch.where(committed, new, torch.zeros_like(new))  # the scored commits only
         if self.ratio_level == "token":
             log_ratio, valid = new - old, committed
         elif self.ratio_level == "step":

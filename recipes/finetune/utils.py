@@ -326,7 +326,8 @@ def make_loss(cfg: DictConfig, model: MMaDAModel):
         )
     p = cfg.loss.ppo
     return PathPPOLoss(model.denoiser, clip_epsilon=float(p.clip_epsilon), ratio_level=p.ratio_level,
-                       normalize_advantage=bool(p.normalize_advantage), denoising_steps=p.denoising_steps)
+                       normalize_advantage=bool(p.normalize_advantage), denoising_steps=p.denoising_steps,
+                       tokens=p.tokens)
 
 
 def make_demo_anchor(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss | None:
