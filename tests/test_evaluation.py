@@ -1,9 +1,7 @@
 """Evaluation protocol, its outputs and the ``mmada-rl eval`` command."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 import torch
@@ -12,6 +10,7 @@ from mmada_rl.cli import main
 from mmada_rl.envs.tasks import UnknownTaskError, task_spec
 from mmada_rl.evaluation import EVAL_SEED_BASE, eval_seeds, evaluate, resolve_model_dir, wilson_interval
 from test_actor import build_tiny_model  # the tiny policy of the actor tests
+from script_loader import load_script
 
 torch.set_num_threads(1)
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -30,10 +29,7 @@ def model_dir(tmp_path_factory):
 
 def load_benchmark(name: str):
     """A script of ``benchmarks/`` as a module (the scripts are not a package)."""
-    spec = importlib.util.spec_from_file_location(name, Path(__file__).parents[1] / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(f"benchmarks/{name}.py")
 
 
 def test_the_evaluation_env_uses_the_camera_the_policy_was_trained_on(model_dir, tmp_path):

@@ -1,7 +1,6 @@
 """Online fine-tuning: chunk rewards, the two losses, advantages, the demo/online mix and the recipe end to end."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import group_relative_advantages
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_policy_env
 from mmada_rl.policy.execution import ChunkReward, StepLog
+from script_loader import load_script
 
 torch.set_num_threads(1)
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -39,10 +39,7 @@ def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
 
 def recipe_utils():
     """The recipe's ``utils`` module (recipes are scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location("finetune_utils", RECIPE.parent / "utils.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(RECIPE.parent / "utils.py", "finetune_utils")
 
 
 @pytest.fixture(scope="module")
@@ -517,9 +514,7 @@ def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp
 
 
 def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rwr_run, tmp_path):
-    spec = importlib.util.spec_from_file_location("compare", REPO / "benchmarks" / "compare" / "compare.py")
-    compare = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare)
+    compare = load_script("benchmarks/compare/compare.py")
     runs = tmp_path / "runs"
     out = compare.run_dir(runs, "PickCube-v1", "mmada_rwr", 0)
     fresh = compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "runs/pretrain_{task}_s{seed}", 5, 500)
@@ -582,9 +577,7 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
 
 
 def test_comparison_help_lists_every_method_with_its_label(capsys):
-    spec = importlib.util.spec_from_file_location("compare", REPO / "benchmarks" / "compare" / "compare.py")
-    compare = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare)
+    compare = load_script("benchmarks/compare/compare.py")
     with pytest.raises(SystemExit):
         compare.main(["run", "--help"])
     text = capsys.readouterr().out
@@ -598,9 +591,7 @@ def test_comparison_help_lists_every_method_with_its_label(capsys):
 
 
 def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
-    spec = importlib.util.spec_from_file_location("finetune_gradients", REPO / "benchmarks" / "finetune_gradients.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script("benchmarks/finetune_gradients.py")
     code = bench.main(["--pretrained", str(toy_pretrain_run), "--online", str(rwr_run / "online_buffer"), "--demos", str(pick_demos),
                        "--minibatches", "3", "--batch-size", "1", "--out", str(tmp_path)])
     assert code == 0
@@ -615,9 +606,7 @@ def test_gradient_diagnostic_reads_a_real_run(rwr_run, toy_pretrain_run, pick_de
 
 
 def test_replayed_steps_benchmark_measures_cost_and_fidelity(toy_pretrain_run, tmp_path):
-    spec = importlib.util.spec_from_file_location("path_ppo_steps", REPO / "benchmarks" / "path_ppo_steps.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script("benchmarks/path_ppo_steps.py")
     code = bench.main(["--pretrained", str(toy_pretrain_run), "--task", "PickCube-v1", "--decisions", "2", "--steps", "1",
                        "--draws", "2", "--out", str(tmp_path)])
     assert code == 0

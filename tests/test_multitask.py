@@ -1,7 +1,6 @@
 """One model on several tasks: mixed chunk windows, tokenizers fitted on every task, the recipe end to end."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from mmada_rl.data import DemoBuffer, MultiTaskWindows, pad_state
 from mmada_rl.keys import STATE_KEY, TASK_INDEX_KEY
 from mmada_rl.policy.model import instructions_of
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
+from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "pretrain" / "pretrain.py"
@@ -129,9 +129,7 @@ def test_multitask_without_a_task_placeholder_is_one_clear_error(pick_demos, tmp
 
 
 def test_pretraining_report_gives_one_row_per_task(multitask_run, toy_pretrain_run, tmp_path):
-    spec = importlib.util.spec_from_file_location("pretraining_benchmark", REPO / "benchmarks" / "pretraining.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script("benchmarks/pretraining.py", "pretraining_benchmark")
     assert bench.main([str(multitask_run[0]), str(toy_pretrain_run), "--out", str(tmp_path)]) == 0
     report = (tmp_path / "pretraining.md").read_text()
     assert "PickCube-v1 (multi-task, 2 tasks)" in report and "PushCube-v1 (multi-task, 2 tasks)" in report
@@ -146,9 +144,7 @@ def test_pretraining_report_gives_one_row_per_task(multitask_run, toy_pretrain_r
 
 
 def test_demo_fit_report_scores_each_task_on_the_same_windows(multitask_run, pick_demos, tmp_path):
-    spec = importlib.util.spec_from_file_location("demo_fit", REPO / "benchmarks" / "demo_fit.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_script("benchmarks/demo_fit.py", "demo_fit")
     args = ["--run", f"{multitask_run[0]}=PickCube-v1,PushCube-v1", "--demos", f"{pick_demos.parent}/{{task}}",
             "--ratios", "0.5", "1.0", "--minibatches", "2", "--batch-size", "2", "--decode-minibatches", "1"]
     assert bench.main([*args, "--out", str(tmp_path / "a")]) == 0

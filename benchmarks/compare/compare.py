@@ -50,6 +50,8 @@ _RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr"
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
+#: the same, replaying 2 of the 10 denoising steps of each path per update
+_PPO_GROUP_2STEPS = [*_PPO_GROUP, "loss.ppo.denoising_steps=2"]
 #: the privileged-state demonstrations (where the online baselines' recipe collects them)
 _STATE_DEMOS = ["env.obs_mode=state", "data.dir=data/state/${env.task}"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
@@ -74,21 +76,19 @@ METHODS = {
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
                         _PPO_GROUP, True),
     "mmada_ppo_group_2steps": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 denoising "
-                               "steps replayed per update (ours)", "rgb+proprio", [*_PPO_GROUP, "loss.ppo.denoising_steps=2"],
-                               True),
+                               "steps replayed per update (ours)", "rgb+proprio", _PPO_GROUP_2STEPS, True),
     "mmada_ppo_group_2steps_demos": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 "
                                      "denoising steps replayed, the demonstrations' denoising loss in every minibatch "
                                      "(ours)", "rgb+proprio",
-                                     [*_PPO_GROUP, "loss.ppo.denoising_steps=2", "loss.ppo.demo_coef=1.0"], True),
+                                     [*_PPO_GROUP_2STEPS, "loss.ppo.demo_coef=1.0"], True),
     "mmada_ppo_group_2steps_4groups": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 "
                                        "denoising steps replayed, 160 decisions (about 4 initial-state groups) per "
                                        "update in minibatches of 64 (ours)", "rgb+proprio",
-                                       [*_PPO_GROUP, "loss.ppo.denoising_steps=2", "collector.decisions_per_batch=160",
+                                       [*_PPO_GROUP_2STEPS, "collector.decisions_per_batch=160",
                                         "replay_buffer.batch_size=64", "checkpoint.interval=2"], True),
     "mmada_ppo_group_2steps_actions": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 "
                                        "denoising steps replayed, the action tokens alone in the ratio (ours)",
-                                       "rgb+proprio", [*_PPO_GROUP, "loss.ppo.denoising_steps=2", "loss.ppo.tokens=action"],
-                                       True),
+                                       "rgb+proprio", [*_PPO_GROUP_2STEPS, "loss.ppo.tokens=action"], True),
     "ppo_rgb": ("PPO from scratch", "rgb+proprio",
                 ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=ppo"], True),
     "sac_rlpd_state": ("SAC + demos (RLPD)", "privileged state (reference)",

@@ -128,7 +128,6 @@ class PathPPOLoss(LossModule):
         self.clip_epsilon, self.ratio_level = float(clip_epsilon), ratio_level
         self.normalize_advantage = bool(normalize_advantage)
         self.denoising_steps = None if denoising_steps is None else int(denoising_steps)
-        self.tokens = tokens
         layout = denoiser.module.layout
         scored = torch.isin(layout.target_positions, layout.action_positions) if tokens == "action" else \
             torch.ones(layout.target_positions.numel(), dtype=torch.bool)
