@@ -248,7 +248,10 @@ def sampled_chunks(model):
     env = make_env("PickCube-v1", max_episode_steps=10)
     actor = MMaDAActor(copy.deepcopy(model))
     penv = make_policy_env(env, actor, chunk_gamma=0.99)
-    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+    # Seeded, in a forked generator: the same two chunks whichever tests ran before, and no change to theirs.
+    with torch.random.fork_rng(), set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        torch.manual_seed(0)
+        penv.env.set_seed(0)
         rollout = penv.env.rollout(2, penv.policy, break_when_any_done=False)
     env.close()
     return rollout
@@ -281,7 +284,9 @@ def test_path_ppo_ratio_is_one_at_unchanged_parameters_and_an_update_raises_good
         recorded = select_steps(flat.log_probs, steps).sum((-2, -1)).reshape(recorded.shape)
     with torch.no_grad():
         after = path_log_prob(net, flat, steps=steps).reshape(recorded.shape)
-    assert (after > recorded).all()
+    # One small step ascends the objective's gradient, the sum of the (replayed) path log-probabilities; a single
+    # path's may fall when the two share parameters, so the claim is on their sum.
+    assert after.sum() > recorded.sum()
     with pytest.raises(ValueError, match="ratio_level"):
         PathPPOLoss(net, ratio_level="chunk")
     with pytest.raises(ValueError, match="denoising_steps"):
