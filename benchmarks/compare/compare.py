@@ -301,6 +301,7 @@ def report(args: argparse.Namespace) -> int:
         return 1
     budgets = sorted(args.at) if args.at else budget_grid(results)
     fig, axes = plt.subplots(1, len(args.task), figsize=(7 * len(args.task), 4.5), squeeze=False)
+    legends = []
     for ax, task in zip(axes[0], args.task):
         for i, (method, entry) in enumerate(results.get(task, {}).items()):
             color, online, n = f"C{i % 10}", METHODS[method][3], len(entry["histories"])
@@ -323,10 +324,12 @@ def report(args: argparse.Namespace) -> int:
         ax.set_ylabel("success_once (greedy unless marked)")
         ax.set_ylim(-0.02, 1.02)
         if ax.get_legend_handles_labels()[0]:  # below the curves: the method labels are long
-            ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.17))
+            legend = ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13))
+            legend.set_in_layout(False)  # else tight_layout shrinks the axes to fit it; savefig takes it in below
+            legends.append(legend)
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "compare.png", dpi=120, bbox_inches="tight")
+    fig.savefig(args.out / "compare.png", dpi=120, bbox_inches="tight", bbox_extra_artists=legends)
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
