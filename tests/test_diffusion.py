@@ -123,7 +123,7 @@ def test_denoiser_shapes_and_restricted_logits(attention):
     assert td[LOGITS_KEY].shape == logits.shape
 
 
-def test_block_causal_conditioning_ignores_targets():
+def test_block_causal_conditioning_ignores_targets_and_noise_level():
     layout = make_layout()
     ids = make_batch(layout, batch=2)
     changed = ids.clone()
@@ -133,6 +133,10 @@ def test_block_causal_conditioning_ignores_targets():
         net = tiny(layout, attention=attention).eval()
         a, b = net(ids, torch.ones(2)), net(changed, torch.ones(2))
         assert torch.allclose(a[:, cond], b[:, cond], atol=1e-6) is same
+        # the noise level conditions the targets only under block-causal attention
+        c = net(ids, torch.full((2,), 0.3))
+        assert torch.allclose(a[:, cond], c[:, cond], atol=1e-6) is same
+        assert not torch.allclose(a[:, ~cond], c[:, ~cond], atol=1e-6)
 
 
 def test_cross_attention_to_visual():

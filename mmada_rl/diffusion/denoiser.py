@@ -50,6 +50,10 @@ class DenoiserConfig:
         dropout: dropout in attention and residual branches.
         attention: ``"bidirectional"`` (the paper) or ``"block_causal"``
             (conditioning attends only to conditioning; targets to everything).
+            Under block-causal attention the noise level is added to the target
+            positions only, so the conditioning's hidden states depend on the
+            conditioning alone and a sampler can compute them once per chunk
+            (:meth:`MaskedDiffusionDenoiser.cache_condition`).
         cross_attention_to_visual: add a cross-attention sublayer per block over
             visual features given to ``forward(visual=...)``.
         visual_dim: width ``d_vis`` of those features (defaults to ``d_model``).
@@ -165,6 +169,8 @@ class MaskedDiffusionDenoiser(nn.Module):
         self.register_buffer("logit_high", high, persistent=False)  # (L,)
         mask = layout.attention_mask(config.attention)
         self.register_buffer("attn_mask", mask, persistent=False)  # (L, L) or None
+        noised = layout.is_target if config.attention == "block_causal" else torch.ones(layout.length, dtype=torch.bool)
+        self.register_buffer("noised_positions", noised[:, None].float(), persistent=False)  # (L, 1)
         self._init_weights()
         if config.pretrained_path is not None:
             load_pretrained_text_embeddings(
@@ -222,7 +228,7 @@ class MaskedDiffusionDenoiser(nn.Module):
                 visual = self.visual_encoder(visual)  # (B, N, C)
             visual = self.visual_proj(visual)  # (B, N, D)
         x = self.token_embedding(ids) + self.position_embedding + self.segment_embedding(self.segment_ids)
-        x = x + self.noise_embedding(noise_level)[:, None, :]  # (B, L, D)
+        x = x + self.noise_embedding(noise_level)[:, None, :] * self.noised_positions  # (B, L, D)
         for block in self.blocks:
             x = block(x, attn_mask=self.attn_mask, visual=visual)
         return self.final_norm(x)  # (B, L, D)
