@@ -383,6 +383,80 @@ def test_path_log_prob_replays_exactly(remasking, kernel):
     assert grads and all(torch.isfinite(g).all() for g in grads)
 
 
+# -- conditioning cache (block-causal attention) -----------------------------------
+def block_causal_net(layout, visual: str | None):
+    """A tiny block-causal denoiser and its visual input: none, features, or images through its own CNN."""
+    if visual is None:
+        return tiny(layout, attention="block_causal").eval(), None
+    if visual == "features":
+        net = tiny(layout, attention="block_causal", cross_attention_to_visual=True, visual_dim=12)
+        return net.eval(), torch.randn(3, 5, 12, generator=torch.Generator().manual_seed(1))
+    net = tiny(layout, attention="block_causal", cross_attention_to_visual=True, visual_encoder_channels=[8, 16])
+    return net.eval(), torch.randint(0, 256, (3, 3, 16, 16), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
+
+
+@pytest.mark.parametrize("visual", [None, "features", "images"])
+@pytest.mark.parametrize("interleave", [False, True])
+def test_condition_cache_gives_the_full_forward_target_logits(visual, interleave):
+    layout = make_layout(interleave=interleave)
+    net, vis = block_causal_net(layout, visual)
+    ids = make_batch(layout, batch=3)
+    tgt = layout.target_positions
+    cache = net.cache_condition(prompt_of(layout), vis)  # the targets of the prompt do not matter
+    g = torch.Generator().manual_seed(2)
+    for rho in (torch.ones(3), torch.tensor([0.2, 0.5, 0.9])):
+        partly = ids.clone()
+        partly[:, tgt] = torch.where(torch.rand(3, len(tgt), generator=g) < rho[:, None], layout.vocab.mask_id, ids[:, tgt])
+        full = net(partly, rho, visual=vis)[:, tgt]  # (B, T, V)
+        cached = net(partly, rho, cache=cache)
+        assert cached.shape == full.shape
+        finite = torch.isfinite(full)
+        assert torch.equal(finite, torch.isfinite(cached))
+        assert torch.allclose(cached[finite], full[finite], atol=1e-5)
+    assert cache.repeat_interleave(2).batch_size == 6
+
+
+def test_condition_cache_errors():
+    layout = make_layout()
+    ids = prompt_of(layout)
+    with pytest.raises(ValueError, match="needs attention='block_causal'"):
+        tiny(layout).cache_condition(ids)
+    net, _ = block_causal_net(layout, None)
+    cache = net.cache_condition(ids)
+    with pytest.raises(ValueError, match="only the target positions"):
+        net(ids, torch.ones(3), positions=torch.arange(layout.length), cache=cache)
+    with pytest.raises(ValueError, match="built for a batch of 3"):
+        net(ids[:2], torch.ones(2), cache=cache)
+
+
+@pytest.mark.parametrize("visual", [None, "features"])
+@pytest.mark.parametrize("remasking", [False, True])
+def test_cached_decoding_and_replay_match_the_uncached_ones(visual, remasking):
+    layout = make_layout(interleave=True)
+    net, vis = block_causal_net(layout, visual)
+    prompt = prompt_of(layout)
+    runs = {}
+    for cached in (True, False):
+        sampler = MaskedDiffusionSampler(SamplerConfig(num_steps=5, remasking=remasking, cache_condition=cached))
+        with set_exploration_type(ExplorationType.RANDOM):
+            runs[cached] = sampler.sample(net, prompt, visual=vis, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(runs[True].ids, runs[False].ids)
+    path = runs[True].path
+    assert torch.allclose(path.log_probs, runs[False].path.log_probs, atol=1e-5)
+    grads = {}
+    for cached in (True, False):  # replay: same log-probabilities, same gradients
+        net.zero_grad()
+        replay = path_log_prob(net, path, visual=vis, cache_condition=cached)
+        assert torch.allclose(replay, path.log_prob, atol=1e-4)
+        replay.sum().backward()
+        grads[cached] = [p.grad.clone() for p in net.parameters() if p.grad is not None]
+    assert len(grads[True]) == len(grads[False])
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(grads[True], grads[False]))
+    steps = torch.tensor([[1, 3]] * 3)
+    assert torch.allclose(path_log_prob(net, path, visual=vis, steps=steps),
+                          path_log_prob(net, path, visual=vis, steps=steps, cache_condition=False), atol=1e-5)
+
+
 @pytest.mark.parametrize("module", ["schedules", "forward_process", "denoiser", "sampler", "objectives"])
 def test_docstring_examples_run(module):
     import doctest

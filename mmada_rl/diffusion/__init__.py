@@ -5,6 +5,7 @@ Keys of these components that :mod:`mmada_rl.keys` lacks are in
 ``CORRUPTED_KEY``, ``VISUAL_FEATURES_KEY``).
 """
 from mmada_rl.diffusion.denoiser import (
+    ConditionCache,
     DenoiserConfig,
     MaskedDiffusionDenoiser,
     make_denoiser_module,
@@ -35,6 +36,7 @@ __all__ = [
     "VISUAL_FEATURES_KEY",
     "AbsorbingKernel",
     "CosineNoiseSchedule",
+    "ConditionCache",
     "Corruption",
     "DecodingPath",
     "DenoiserConfig",

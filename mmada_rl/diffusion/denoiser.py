@@ -1,14 +1,21 @@
 """The masked-diffusion denoiser ``D_θ(x̃, ρ)`` over the unified sequence.
 
 A pre-norm transformer: token + learned position + segment (modality role)
-embeddings, plus an embedding of the noise level added to every position;
-self-attention bidirectional or block-causal (per the layout); an optional
+embeddings, plus an embedding of the noise level added to every position (to
+the targets only under block-causal attention); self-attention bidirectional or
+block-causal (per the layout); an optional
 cross-attention sublayer per block to visual features ``[B, N, d_vis]`` — given
 as such, or computed from the observation image by a CNN the denoiser owns and
 trains (``visual_encoder_channels``). The
 output head covers the whole vocabulary (tied to the token embeddings by
 default) and every position's logits are set to ``-inf`` outside the id range
 the layout allows there, so targets can only emit ids of their own modality.
+
+With block-causal attention the conditioning never reads the targets or the
+noise level, so its keys and values at every layer are the same at every
+decoding step: :meth:`MaskedDiffusionDenoiser.cache_condition` computes them
+once per prompt and ``forward(..., cache=...)`` then runs the target positions
+alone, attending to the cached conditioning (the same logits, fewer rows).
 """
 from __future__ import annotations
 
@@ -26,6 +33,7 @@ from mmada_rl.keys import NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.tokenizers.layout import SEGMENTS, SequenceLayout
 
 __all__ = [
+    "ConditionCache",
     "DenoiserConfig",
     "MaskedDiffusionDenoiser",
     "make_denoiser_module",
@@ -122,6 +130,35 @@ class DenoiserConfig:
         return cls(**{**_PRESETS[name], **overrides})
 
 
+@dataclass
+class ConditionCache:
+    """The conditioning of a batch of prompts as a block-causal denoiser's targets read it.
+
+    Built by :meth:`MaskedDiffusionDenoiser.cache_condition`; valid for any
+    targets and noise level of those prompts.
+
+    Attributes:
+        keys / values: one ``[B, H, C, Dh]`` tensor per block: the self-attention
+            keys and values of the ``C`` conditioning positions.
+        visual: ``[B, N, D]`` projected visual features for the cross-attention
+            (the CNN's, when the denoiser encodes the image), or None.
+    """
+
+    keys: list[torch.Tensor]
+    values: list[torch.Tensor]
+    visual: torch.Tensor | None = None
+
+    @property
+    def batch_size(self) -> int:
+        return self.keys[0].shape[0]
+
+    def repeat_interleave(self, repeats: int) -> "ConditionCache":
+        """Each prompt's cache repeated ``repeats`` times in a row (batch ``B * repeats``)."""
+        def rep(x):
+            return None if x is None else x.repeat_interleave(repeats, dim=0)
+        return ConditionCache([rep(k) for k in self.keys], [rep(v) for v in self.values], rep(self.visual))
+
+
 class MaskedDiffusionDenoiser(nn.Module):
     """Transformer denoiser: ``forward(ids [B, L], noise_level [B]) -> logits [B, L, V]``.
 
@@ -171,6 +208,8 @@ class MaskedDiffusionDenoiser(nn.Module):
         self.register_buffer("attn_mask", mask, persistent=False)  # (L, L) or None
         noised = layout.is_target if config.attention == "block_causal" else torch.ones(layout.length, dtype=torch.bool)
         self.register_buffer("noised_positions", noised[:, None].float(), persistent=False)  # (L, 1)
+        self.register_buffer("condition_positions", layout.is_condition.nonzero().squeeze(-1), persistent=False)
+        self.register_buffer("target_positions", layout.target_positions.clone(), persistent=False)
         self._init_weights()
         if config.pretrained_path is not None:
             load_pretrained_text_embeddings(
@@ -204,34 +243,93 @@ class MaskedDiffusionDenoiser(nn.Module):
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
+    @property
+    def supports_condition_cache(self) -> bool:
+        """Whether :meth:`cache_condition` applies (block-causal attention)."""
+        return self.config.attention == "block_causal"
+
     # -- forward -------------------------------------------------------------
-    def encode(
-        self, ids: torch.Tensor, noise_level: torch.Tensor, visual: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """Final hidden states ``[B, L, D]`` of sequences ``ids [B, L]`` at noise levels ``[B]``."""
+    def _check_ids(self, ids: torch.Tensor) -> None:
         length = self.layout.length
         if ids.ndim != 2 or ids.shape[1] != length:
             raise ValueError(f"ids: expected shape [B, {length}], got {list(ids.shape)}.")
+
+    def _noise(self, noise_level: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+        """Noise-level embedding ``[B, D]`` (a scalar level applies to the whole batch)."""
         noise_level = torch.as_tensor(noise_level, device=ids.device)
         if noise_level.ndim == 0:
             noise_level = noise_level.expand(ids.shape[0])
         if noise_level.shape != ids.shape[:1]:
             raise ValueError(f"noise_level: expected shape [{ids.shape[0]}], got {list(noise_level.shape)}.")
+        return self.noise_embedding(noise_level)
+
+    def _embed(self, ids: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """Token + position + segment embeddings ``[B, P, D]`` of ``ids [B, P]`` at ``positions [P]``."""
+        return self.token_embedding(ids) + self.position_embedding[positions] + self.segment_embedding(
+            self.segment_ids[positions]
+        )
+
+    def _visual_context(self, visual: torch.Tensor | None, batch: int) -> torch.Tensor | None:
+        """What the cross-attention reads, ``[B, N, D]`` (None without cross-attention)."""
         if self.visual_proj is None and visual is not None:
             raise ValueError("visual features given but cross_attention_to_visual=False.")
-        if self.visual_proj is not None:
-            expected = f"[{ids.shape[0]}, 3, H, W] uint8 images" if self.visual_encoder else f"[{ids.shape[0]}, N, d_vis]"
-            if visual is None or visual.ndim != self.visual_ndim or visual.shape[0] != ids.shape[0]:
-                got = None if visual is None else list(visual.shape)
-                raise ValueError(f"visual: expected shape {expected}, got {got}.")
-            if self.visual_encoder is not None:
-                visual = self.visual_encoder(visual)  # (B, N, C)
-            visual = self.visual_proj(visual)  # (B, N, D)
-        x = self.token_embedding(ids) + self.position_embedding + self.segment_embedding(self.segment_ids)
-        x = x + self.noise_embedding(noise_level)[:, None, :] * self.noised_positions  # (B, L, D)
+        if self.visual_proj is None:
+            return None
+        expected = f"[{batch}, 3, H, W] uint8 images" if self.visual_encoder else f"[{batch}, N, d_vis]"
+        if visual is None or visual.ndim != self.visual_ndim or visual.shape[0] != batch:
+            got = None if visual is None else list(visual.shape)
+            raise ValueError(f"visual: expected shape {expected}, got {got}.")
+        if self.visual_encoder is not None:
+            visual = self.visual_encoder(visual)  # (B, N, C)
+        return self.visual_proj(visual)  # (B, N, D)
+
+    def encode(
+        self, ids: torch.Tensor, noise_level: torch.Tensor, visual: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Final hidden states ``[B, L, D]`` of sequences ``ids [B, L]`` at noise levels ``[B]``."""
+        self._check_ids(ids)
+        noise = self._noise(noise_level, ids)  # (B, D)
+        visual = self._visual_context(visual, ids.shape[0])
+        x = self._embed(ids, torch.arange(self.layout.length, device=ids.device))
+        x = x + noise[:, None, :] * self.noised_positions  # (B, L, D)
         for block in self.blocks:
             x = block(x, attn_mask=self.attn_mask, visual=visual)
         return self.final_norm(x)  # (B, L, D)
+
+    def cache_condition(self, ids: torch.Tensor, visual: torch.Tensor | None = None) -> ConditionCache:
+        """Keys and values of the conditioning positions of ``ids [B, L]`` at every block.
+
+        Only with block-causal attention, where the conditioning attends to
+        itself alone and carries no noise level: then ``forward(ids', ρ,
+        cache=cache)`` for any ``ids'`` with the same conditioning gives the
+        target logits of ``forward(ids', ρ, visual)``. The target positions of
+        ``ids`` are ignored.
+        """
+        if not self.supports_condition_cache:
+            raise ValueError(
+                f"cache_condition needs attention='block_causal' (this denoiser's is {self.config.attention!r}): "
+                "with bidirectional attention the conditioning reads the targets, so it changes at every step."
+            )
+        self._check_ids(ids)
+        visual = self._visual_context(visual, ids.shape[0])
+        x = self._embed(ids[:, self.condition_positions], self.condition_positions)  # (B, C, D)
+        keys, values = [], []
+        for block in self.blocks:  # the conditioning rows of the block-causal mask: all-to-all among themselves
+            x, (k, v) = block(x, visual=visual, return_kv=True)
+            keys.append(k)
+            values.append(v)
+        return ConditionCache(keys, values, visual)
+
+    def encode_targets(self, ids: torch.Tensor, noise_level: torch.Tensor, cache: ConditionCache) -> torch.Tensor:
+        """Final hidden states ``[B, T, D]`` of the target positions, the conditioning read from ``cache``."""
+        self._check_ids(ids)
+        if cache.batch_size != ids.shape[0]:
+            raise ValueError(f"cache: built for a batch of {cache.batch_size}, ids have {ids.shape[0]}.")
+        noise = self._noise(noise_level, ids)  # (B, D)
+        x = self._embed(ids[:, self.target_positions], self.target_positions) + noise[:, None, :]  # (B, T, D)
+        for block, k, v in zip(self.blocks, cache.keys, cache.values):
+            x = block(x, visual=cache.visual, prefix=(k, v))
+        return self.final_norm(x)
 
     def project(self, hidden: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         """Restricted logits ``[..., V]`` of hidden states ``[..., D]`` at sequence ``positions [...]``."""
@@ -247,6 +345,7 @@ class MaskedDiffusionDenoiser(nn.Module):
         noise_level: torch.Tensor,
         visual: torch.Tensor | None = None,
         positions: torch.Tensor | None = None,
+        cache: ConditionCache | None = None,
     ) -> torch.Tensor:
         """Logits ``[*B, P, V]`` at ``positions`` (long ``[P]``; all ``L`` positions by default).
 
@@ -257,12 +356,24 @@ class MaskedDiffusionDenoiser(nn.Module):
                 when the denoiser has its own encoder (only with cross-attention).
             positions: which positions to score; asking only for the targets
                 saves the head's ``L × V`` product on the conditioning.
+            cache: the conditioning of these prompts (:meth:`cache_condition`,
+                batch ``prod(*B)``): only the target positions are computed, so
+                ``positions`` must be None or the targets, and ``visual`` is
+                read from the cache. Returns the target logits ``[*B, T, V]``.
         """
         batch_shape = ids.shape[:-1]
         flat_ids = ids.reshape(-1, ids.shape[-1])
         noise_level = torch.as_tensor(noise_level, device=ids.device)
         if noise_level.ndim:
             noise_level = noise_level.reshape(-1)
+        if cache is not None:
+            targets = self.target_positions
+            if positions is not None and not torch.equal(positions.to(targets.device), targets):
+                raise ValueError("with a conditioning cache only the target positions are computed; pass positions=None.")
+            if visual is not None:
+                raise ValueError("with a conditioning cache the visual input is read from the cache; pass visual=None.")
+            logits = self.project(self.encode_targets(flat_ids, noise_level, cache), targets)  # (B, T, V)
+            return logits.reshape(*batch_shape, *logits.shape[1:])
         if visual is not None:
             visual = self.flat_visual(visual)
         hidden = self.encode(flat_ids, noise_level, visual)  # (B, L, D)

@@ -19,6 +19,8 @@ from tensordict import tensorclass
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
+from mmada_rl.diffusion.denoiser import ConditionCache
+
 __all__ = ["DecodingPath", "path_log_prob", "sample_steps", "select_steps", "target_log_probs", "unwrap_denoiser"]
 
 
@@ -69,15 +71,21 @@ def target_log_probs(
     noise_level: torch.Tensor,
     temperature: torch.Tensor | float = 1.0,
     visual: torch.Tensor | None = None,
+    cache: ConditionCache | None = None,
 ) -> torch.Tensor:
     """Log-probabilities ``[B, T, V]`` of every target position, restricted to its modality.
 
     The one function both the sampler and :func:`path_log_prob` call, so that
-    recording and replay compute exactly the same distribution.
+    recording and replay compute exactly the same distribution. With ``cache``
+    (a block-causal denoiser's :class:`~mmada_rl.diffusion.denoiser.ConditionCache`
+    of these prompts) only the targets are computed and ``visual`` must be None.
     """
     layout = denoiser.layout
     positions = layout.target_positions.to(ids.device)  # (T,)
-    logits = denoiser(ids, noise_level, visual=visual, positions=positions)  # (B, T, V)
+    if cache is None:
+        logits = denoiser(ids, noise_level, visual=visual, positions=positions)  # (B, T, V)
+    else:
+        logits = denoiser(ids, noise_level, visual=visual, cache=cache)  # (B, T, V)
     low, high = layout.logit_bounds()
     low, high = low[positions.cpu()].to(ids.device), high[positions.cpu()].to(ids.device)
     vocab_ids = torch.arange(logits.shape[-1], device=ids.device)
@@ -95,6 +103,7 @@ def path_log_prob(
     visual: torch.Tensor | None = None,
     per_token: bool = False,
     steps: torch.Tensor | None = None,
+    cache_condition: bool = True,
 ) -> torch.Tensor:
     """Log-probability of a recorded path under the denoiser's current parameters.
 
@@ -114,6 +123,10 @@ def path_log_prob(
             those steps only (``[B, S, T]`` with ``per_token``). Each step's
             distribution depends on its recorded inputs alone, so any subset is
             scored exactly.
+        cache_condition: with a block-causal denoiser, compute each path's
+            conditioning once (with its gradient) and replay only the target
+            positions at every step; the same log-probabilities as the full
+            forward passes. Ignored with bidirectional attention.
     """
     net = unwrap_denoiser(denoiser)
     inputs, noise_levels, committed, tokens = path.inputs, path.noise_levels, path.committed, path.tokens
@@ -124,11 +137,15 @@ def path_log_prob(
     positions = net.layout.target_positions.to(inputs.device)
     ids = path.start_ids[:, None, :].expand(batch, num_steps, -1).clone()  # (B, S, L)
     ids[:, :, positions] = inputs
-    if visual is not None:
+    cache = None
+    if cache_condition and getattr(net, "supports_condition_cache", False):
+        cache = net.cache_condition(path.start_ids, visual).repeat_interleave(num_steps)  # batch B * S
+        visual = None
+    elif visual is not None:
         visual = visual.repeat_interleave(num_steps, dim=0)  # (B * S, N_v, d_vis)
     temperature = path.temperature.repeat_interleave(num_steps)  # (B * S,)
     logp = target_log_probs(
-        net, ids.reshape(batch * num_steps, -1), noise_levels.reshape(-1), temperature, visual
+        net, ids.reshape(batch * num_steps, -1), noise_levels.reshape(-1), temperature, visual, cache
     )  # (B * S, T, V)
     chosen = logp.gather(-1, tokens.reshape(batch * num_steps, num_targets, 1)).squeeze(-1)
     chosen = torch.where(committed.reshape(batch * num_steps, -1), chosen, torch.zeros_like(chosen))

@@ -12,6 +12,10 @@ tokens compete too, scored by their log-probability under the current step's
 prediction, so a token whose confidence fell below the new candidates is
 re-masked and decided again later (low-confidence remasking).
 
+With a block-causal denoiser the conditioning's keys and values are computed
+once per chunk and each step runs the target positions alone
+(``SamplerConfig.cache_condition``).
+
 Greedy decoding (argmax tokens, no Gumbel noise) is used when
 ``greedy=True`` or when the interaction type is ``DETERMINISTIC``/``MODE``/``MEAN``
 (``torchrl.envs.utils.set_exploration_type``); sampling otherwise.
@@ -53,6 +57,9 @@ class SamplerConfig:
             quantity with the uniform kernel.
         kernel: ``"absorbing"`` (start from ``[MASK]``) or ``"uniform"`` (start
             from random in-range ids; uncommitted positions keep their noise).
+        cache_condition: with a block-causal denoiser, compute the conditioning
+            once per chunk and run only the target positions at each step (the
+            same distributions; no effect with bidirectional attention).
     """
 
     num_steps: int = 10
@@ -61,6 +68,7 @@ class SamplerConfig:
     confidence_temperature: float = 1.0
     remasking: bool = False
     kernel: str = "absorbing"
+    cache_condition: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_steps, int) or self.num_steps < 1:
@@ -166,10 +174,13 @@ class MaskedDiffusionSampler:
             "tokens": torch.empty(batch, steps, num_targets, dtype=torch.long, device=device),
             "log_probs": torch.empty(batch, steps, num_targets, device=device),
         }
+        cache = None
+        if cfg.cache_condition and getattr(net, "supports_condition_cache", False):
+            cache, visual = net.cache_condition(x, visual), None  # the conditioning, once for all N steps
         for n in range(steps):
             current = x[:, positions]  # (B, T)
             noise_level = (~committed).float().mean(-1)  # (B,)
-            logp = target_log_probs(net, x, noise_level, temperature, visual)  # (B, T, V)
+            logp = target_log_probs(net, x, noise_level, temperature, visual, cache)  # (B, T, V)
             if greedy:
                 candidate = logp.argmax(-1)
             else:

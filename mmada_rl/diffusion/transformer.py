@@ -1,7 +1,8 @@
 """Pre-norm transformer blocks of the denoiser.
 
-Self-attention (optionally masked) and an optional cross-attention sublayer
-to visual features, both through ``torch.nn.functional.scaled_dot_product_attention``.
+Self-attention (optionally masked, optionally after cached keys and values)
+and an optional cross-attention sublayer to visual features, both through
+``torch.nn.functional.scaled_dot_product_attention``.
 """
 from __future__ import annotations
 
@@ -15,7 +16,12 @@ __all__ = ["Attention", "NoiseLevelEmbedding", "TransformerBlock"]
 
 
 class Attention(nn.Module):
-    """Multi-head attention; self-attention when ``context`` is None."""
+    """Multi-head attention; self-attention when ``context`` is None.
+
+    ``prefix``: keys and values ``([B, H, C, Dh], [B, H, C, Dh])`` computed
+    earlier (a conditioning cache) that the queries attend to before their own
+    keys; ``return_kv``: also return this call's own keys and values.
+    """
 
     def __init__(self, dim: int, num_heads: int, dropout: float = 0.0, context_dim: int | None = None) -> None:
         super().__init__()
@@ -28,20 +34,32 @@ class Attention(nn.Module):
         self.out = nn.Linear(dim, dim)
 
     def forward(
-        self, x: torch.Tensor, context: torch.Tensor | None = None, attn_mask: torch.Tensor | None = None
-    ) -> torch.Tensor:
+        self,
+        x: torch.Tensor,
+        context: torch.Tensor | None = None,
+        attn_mask: torch.Tensor | None = None,
+        prefix: tuple[torch.Tensor, torch.Tensor] | None = None,
+        return_kv: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         batch, length, dim = x.shape  # (B, L, D)
         context = x if context is None else context  # (B, N, D_ctx)
         q = self.q(x).view(batch, length, self.num_heads, -1).transpose(1, 2)  # (B, H, L, Dh)
         k, v = self.kv(context).view(batch, context.shape[1], 2, self.num_heads, -1).permute(2, 0, 3, 1, 4)
+        own = (k, v)
+        if prefix is not None:
+            k, v = torch.cat([prefix[0], k], dim=2), torch.cat([prefix[1], v], dim=2)  # (B, H, C + N, Dh)
         y = F.scaled_dot_product_attention(
             q, k, v, attn_mask=attn_mask, dropout_p=self.dropout if self.training else 0.0
         )  # (B, H, L, Dh)
-        return self.out(y.transpose(1, 2).reshape(batch, length, dim))
+        out = self.out(y.transpose(1, 2).reshape(batch, length, dim))
+        return (out, own) if return_kv else out
 
 
 class TransformerBlock(nn.Module):
-    """``x + SelfAttn(LN x)``, then ``x + CrossAttn(LN x, visual)`` (optional), then ``x + MLP(LN x)``."""
+    """``x + SelfAttn(LN x)``, then ``x + CrossAttn(LN x, visual)`` (optional), then ``x + MLP(LN x)``.
+
+    ``prefix`` and ``return_kv`` go to the self-attention (see :class:`Attention`).
+    """
 
     def __init__(
         self,
@@ -62,12 +80,21 @@ class TransformerBlock(nn.Module):
         self.drop = nn.Dropout(dropout)
 
     def forward(
-        self, x: torch.Tensor, attn_mask: torch.Tensor | None = None, visual: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        x = x + self.drop(self.attn(self.norm_attn(x), attn_mask=attn_mask))  # (B, L, D)
+        self,
+        x: torch.Tensor,
+        attn_mask: torch.Tensor | None = None,
+        visual: torch.Tensor | None = None,
+        prefix: tuple[torch.Tensor, torch.Tensor] | None = None,
+        return_kv: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        attended = self.attn(self.norm_attn(x), attn_mask=attn_mask, prefix=prefix, return_kv=return_kv)
+        if return_kv:
+            attended, kv = attended
+        x = x + self.drop(attended)  # (B, L, D)
         if self.cross is not None:
             x = x + self.drop(self.cross(self.norm_cross(x), context=visual))
-        return x + self.drop(self.mlp(self.norm_mlp(x)))
+        x = x + self.drop(self.mlp(self.norm_mlp(x)))
+        return (x, kv) if return_kv else x
 
 
 class NoiseLevelEmbedding(nn.Module):
