@@ -311,6 +311,8 @@ class MaskedDiffusionDenoiser(nn.Module):
                 "with bidirectional attention the conditioning reads the targets, so it changes at every step."
             )
         self._check_ids(ids)
+        if visual is not None:
+            visual = self.flat_visual(visual)
         visual = self._visual_context(visual, ids.shape[0])
         x = self._embed(ids[:, self.condition_positions], self.condition_positions)  # (B, C, D)
         keys, values = [], []
