@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
 
     from mmada_rl.diffusion import DenoiserConfig, MaskedDiffusionDenoiser, MaskedDiffusionSampler, SamplerConfig
-    from mmada_rl.diffusion.path import path_log_prob
+    from mmada_rl.diffusion.path import path_log_prob, sample_steps
     from mmada_rl.evaluation import resolve_model_dir
     from mmada_rl.policy import MMaDAModel
 
@@ -123,8 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     prompts = random_prompts(layout, args.replay_paths, generator)
     path = MaskedDiffusionSampler(SamplerConfig(num_steps=max(args.steps))).sample(
         net, prompts, greedy=False, generator=generator).path
-    steps = torch.stack([torch.randperm(path.num_steps, generator=generator)[:args.replay_steps].sort().values
-                         for _ in range(args.replay_paths)])
+    steps = sample_steps(path.committed, args.replay_steps, generator)  # as PathPPOLoss draws them
 
     def replay(cache: bool) -> None:
         net.zero_grad(set_to_none=True)

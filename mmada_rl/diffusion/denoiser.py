@@ -263,9 +263,12 @@ class MaskedDiffusionDenoiser(nn.Module):
             raise ValueError(f"noise_level: expected shape [{ids.shape[0]}], got {list(noise_level.shape)}.")
         return self.noise_embedding(noise_level)
 
-    def _embed(self, ids: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
-        """Token + position + segment embeddings ``[B, P, D]`` of ``ids [B, P]`` at ``positions [P]``."""
-        return self.token_embedding(ids) + self.position_embedding[positions] + self.segment_embedding(
+    def _embed(self, ids: torch.Tensor, positions: torch.Tensor | None = None) -> torch.Tensor:
+        """Token + position + segment embeddings of sequences ``ids [B, L]``: ``[B, L, D]``, or
+        ``[B, P, D]`` at ``positions [P]``."""
+        if positions is None:
+            return self.token_embedding(ids) + self.position_embedding + self.segment_embedding(self.segment_ids)
+        return self.token_embedding(ids[:, positions]) + self.position_embedding[positions] + self.segment_embedding(
             self.segment_ids[positions]
         )
 
@@ -290,7 +293,7 @@ class MaskedDiffusionDenoiser(nn.Module):
         self._check_ids(ids)
         noise = self._noise(noise_level, ids)  # (B, D)
         visual = self._visual_context(visual, ids.shape[0])
-        x = self._embed(ids, torch.arange(self.layout.length, device=ids.device))
+        x = self._embed(ids)
         x = x + noise[:, None, :] * self.noised_positions  # (B, L, D)
         for block in self.blocks:
             x = block(x, attn_mask=self.attn_mask, visual=visual)
@@ -314,7 +317,7 @@ class MaskedDiffusionDenoiser(nn.Module):
         if visual is not None:
             visual = self.flat_visual(visual)
         visual = self._visual_context(visual, ids.shape[0])
-        x = self._embed(ids[:, self.condition_positions], self.condition_positions)  # (B, C, D)
+        x = self._embed(ids, self.condition_positions)  # (B, C, D)
         keys, values = [], []
         for block in self.blocks:  # the conditioning rows of the block-causal mask: all-to-all among themselves
             x, (k, v) = block(x, visual=visual, return_kv=True)
@@ -328,7 +331,7 @@ class MaskedDiffusionDenoiser(nn.Module):
         if cache.batch_size != ids.shape[0]:
             raise ValueError(f"cache: built for a batch of {cache.batch_size}, ids have {ids.shape[0]}.")
         noise = self._noise(noise_level, ids)  # (B, D)
-        x = self._embed(ids[:, self.target_positions], self.target_positions) + noise[:, None, :]  # (B, T, D)
+        x = self._embed(ids, self.target_positions) + noise[:, None, :]  # (B, T, D)
         for block, k, v in zip(self.blocks, cache.keys, cache.values):
             x = block(x, visual=cache.visual, prefix=(k, v))
         return self.final_norm(x)
