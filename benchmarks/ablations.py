@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -81,10 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     ax[1].set_xlabel("decoding steps N")
     ax[1].set_ylabel("decode ms per chunk")
     fig.suptitle(f"{args.task}: {args.episodes} episodes per setting")
-    fig.tight_layout()
     name = f"ablations_{args.task}"
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / f"{name}.png", dpi=120)
+    save_figure(fig, args.out / f"{name}.png")
     write_results(name, {"checkpoint": str(args.checkpoint), "task": args.task, "episodes": args.episodes, "records": records},
                   f"# Inference-time ablations: {args.task}\n\n{table}\n\n![N ablation]({name}.png)\n", directory=args.out)
     print(table)

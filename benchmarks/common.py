@@ -38,6 +38,17 @@ def write_results(name: str, payload: dict, markdown: str, directory: Path = RES
     return json_path, md_path
 
 
+def save_figure(fig, path: Path, **savefig_kwargs) -> Path:
+    """Lay out ``fig``, write it to ``path`` (its folder created; 120 dpi) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, **savefig_kwargs)
+    plt.close(fig)
+    return path
+
+
 def flat_gradient(params: list, grads: list) -> "torch.Tensor":
     """One flat vector of the gradients of ``params`` (zeros where a gradient is ``None``)."""
     import torch

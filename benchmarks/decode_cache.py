@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
 
 def random_prompts(layout, batch: int, generator: torch.Generator) -> torch.Tensor:
@@ -175,8 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             ax.plot([r["num_steps"] for r in records], [r[f"{name} ms"] for r in records], style, label=name)
         ax.set(xlabel="decoding steps N", ylabel="ms per decoded chunk batch", title=f"batch {batch}")
         ax.legend()
-    fig.tight_layout()
-    fig.savefig(args.out / f"{args.name}.png", dpi=120)
+    save_figure(fig, args.out / f"{args.name}.png")
     print(f"wrote {json_path}, {md_path} and {args.out / f'{args.name}.png'}")
     return 0
 

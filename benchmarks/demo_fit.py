@@ -36,7 +36,7 @@ import torch
 from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
 from mmada_rl.data import DemoBuffer, make_window_buffer  # noqa: E402
 from mmada_rl.diffusion.schedules import UniformNoiseSchedule  # noqa: E402
@@ -150,9 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xlabel("masking ratio of the targets")
     ax.set_ylabel("action-token accuracy")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / f"{args.name}.png", dpi=120)
+    save_figure(fig, args.out / f"{args.name}.png")
     payload = {"runs": {str(run): tasks for run, tasks in args.run}, "demos": args.demos, "minibatches": args.minibatches,
                "batch_size": args.batch_size, "seed": args.seed, "results": results, "decoded": decoded}
     command = "python benchmarks/demo_fit.py " + " ".join(f"--run {run}={','.join(tasks)}" for run, tasks in args.run)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torchrl.envs.utils import RandomPolicy
 
-from common import RESULTS, markdown_table, write_results
+from common import RESULTS, markdown_table, save_figure, write_results
 from mmada_rl.data.collect import collect
 from mmada_rl.envs.maniskill import EnvConfig, make_env, make_gym_env
 
@@ -95,8 +95,7 @@ def plot(results: list[dict], workers: int, path):
         ax.set_title(f"PickCube-v1, obs_mode={r['obs_mode']}")
         ax.set_ylabel("env steps / s")
         ax.tick_params(axis="x", rotation=20)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path)
 
 
 def main():

@@ -37,7 +37,7 @@ import torch
 from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, flat_gradient, markdown_table, write_results  # noqa: E402
+from common import RESULTS, flat_gradient, markdown_table, save_figure, write_results  # noqa: E402
 
 from mmada_rl.data import DemoBuffer, make_window_buffer  # noqa: E402
 from mmada_rl.evaluation import resolve_model_dir  # noqa: E402
@@ -159,9 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_xlabel("cosine between two minibatch gradients")
         ax.set_ylabel("pairs")
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "finetune_gradients.png", dpi=120)
+    save_figure(fig, args.out / "finetune_gradients.png")
     payload = {"pretrained": str(args.pretrained), "online": str(args.online), "demos": str(args.demos), "first_rows": args.first_rows,
                "online_rows": int(online.shape[0]), "positive_advantage_rows": int(success.shape[0]), "batch_size": args.batch_size,
                "sources": results}

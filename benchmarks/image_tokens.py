@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
 from mmada_rl.data import DemoBuffer  # noqa: E402
 from mmada_rl.tokenizers import Tokenizers  # noqa: E402
@@ -101,9 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             ax.set_xticks([])
             ax.set_yticks([])
         axes[row][0].set_ylabel(label, fontsize=7)
-    fig.tight_layout()
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / f"{args.name}.png", dpi=120)
+    save_figure(fig, args.out / f"{args.name}.png")
 
     command = "python benchmarks/image_tokens.py " + " ".join(f"--tokenizers {d}={t}" for d, t in args.tokenizers)
     write_results(args.name, {"demos": args.demos, "every": args.every, "results": rows},

@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, flat_gradient, markdown_table, write_results  # noqa: E402
+from common import RESULTS, flat_gradient, markdown_table, save_figure, write_results  # noqa: E402
 
 
 def timed_grad(loss_fn, batch, params) -> tuple[float, torch.Tensor]:
@@ -142,8 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     ax2.plot(xs, [r["cos_mean_of_draws_to_full"] for r in records] + [1.0], "s--", label=f"mean of {args.draws} draws")
     ax2.set(xlabel="replayed steps S", ylabel="cosine to the full gradient", title="fidelity", ylim=(0, 1.05))
     ax2.legend()
-    fig.tight_layout()
-    fig.savefig(args.out / f"{args.name}.png", dpi=120)
+    save_figure(fig, args.out / f"{args.name}.png")
     print(f"wrote {json_path}, {md_path} and {args.out / f'{args.name}.png'}")
     return 0
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import markdown_table, probe_parser, probed_episode, run_probe, write_results  # noqa: E402
+from common import markdown_table, probe_parser, probed_episode, run_probe, save_figure, write_results  # noqa: E402
 
 TASK = "PickCube-v1"
 
@@ -137,9 +137,7 @@ def plot(episodes: list[dict], path: Path, title: str) -> None:
     ax.set_ylabel("cube – goal distance (cm)")
     ax.set_title(f"PickCube-v1 progress\n{title}", fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

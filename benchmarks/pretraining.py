@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
 
 def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
@@ -135,9 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ax[1].set_ylim(-0.02, 1.02)
     for a in ax:
         a.legend(fontsize=7)
-    fig.tight_layout()
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "pretraining.png", dpi=120)
+    save_figure(fig, args.out / "pretraining.png")
     write_results("pretraining", {"runs": runs}, f"# Pretraining results\n\n{table}\n\n![curves](pretraining.png)\n",
                   directory=args.out)
     print(table)

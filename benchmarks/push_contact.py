@@ -20,7 +20,7 @@ from pathlib import Path
 
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import markdown_table, probe_parser, probed_episode, run_probe, write_results  # noqa: E402
+from common import markdown_table, probe_parser, probed_episode, run_probe, save_figure, write_results  # noqa: E402
 
 TASK = "PushCube-v1"
 DOWN_CM = 1.5  # the TCP counts as "down" below this height above the cube's centre
@@ -82,9 +82,7 @@ def plot(episodes: list[dict], path: Path, title: str) -> None:
     if ax.collections:
         ax.legend()
     ax.set_aspect("equal")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

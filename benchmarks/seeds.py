@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 from pretraining import read_evaluations  # noqa: E402
 
 from mmada_rl.evaluation import wilson_interval  # noqa: E402
@@ -121,9 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_xticks(range(len(groups)), [g["label"] for g in groups], fontsize=7, rotation=25, ha="right")
     ax.set_ylabel("success_once\n(per seed, 95% CI; dashed: pooled)")
     ax.set_ylim(-0.02, 1.02)
-    fig.tight_layout()
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / f"{args.name}.png", dpi=120)
+    save_figure(fig, args.out / f"{args.name}.png")
     write_results(args.name, {"groups": groups}, f"# Training seeds\n\n{table}\n\n![seeds]({args.name}.png)\n",
                   directory=args.out)
     print(table)

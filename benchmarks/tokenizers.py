@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from common import RESULTS, markdown_table, write_results
+from common import RESULTS, markdown_table, save_figure, write_results
 from mmada_rl.data import DemoBuffer
 from mmada_rl.data.collect import collect
 from mmada_rl.envs.maniskill import EnvConfig
@@ -98,8 +98,7 @@ def plot(results: list[dict], path: Path) -> None:
     handles = [plt.Line2D([], [], color=c, marker="o", ls="", label=k) for k, c in colors.items()]
     handles += [plt.Line2D([], [], color="k", marker=markers[i], ls="", label=r["task"]) for i, r in enumerate(results)]
     axes[0].legend(handles=handles, fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path)
 
 
 def main() -> None:

@@ -145,6 +145,19 @@ def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
     assert err.startswith("mmada-rl eval: error: no MMaDA policy at") and "\n" not in err
 
 
+def test_benchmark_figures_are_written_into_new_folders_and_closed(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    common = load_benchmark("common")
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    path = common.save_figure(fig, tmp_path / "new" / "folder" / "curve.png")
+    assert path.read_bytes().startswith(b"\x89PNG") and not plt.fignum_exists(fig.number)
+
+
 def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run, tmp_path):
     bench = load_benchmark("seeds")
     # the toy run logged a 1-episode evaluation at its last step; evaluate it again into an eval.json

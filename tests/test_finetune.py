@@ -579,6 +579,22 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert compare.training_rollouts(tmp_path / "absent", 20) == []
     with pytest.raises(SystemExit):
         compare.main(["report", "--runs", str(runs), "--window", "0"])
+    # a second, named run directory (the same method from another starting point) reported beside the first
+    other = tmp_path / "other_runs"
+    shutil.copytree(rwr_run, compare.run_dir(other, "PickCube-v1", "mmada_rwr", 0))
+    both = tmp_path / "both"
+    assert compare.main(["report", "--runs", str(runs), f"block-causal={other}", "--out", str(both), "--at", "30"]) == 0
+    payload = json.loads((both / "compare.json").read_text())
+    entries = payload["results"]["PickCube-v1"]
+    assert set(entries) == {"mmada_rwr", "mmada_rwr@block-causal"} and payload["runs"]["block-causal"] == str(other)
+    assert list(entries["mmada_rwr@block-causal"]["histories"]) == ["s0"] and len(entries["mmada_rwr"]["histories"]) == 2
+    table = (both / "compare.md").read_text()
+    assert "reward-weighted diffusion (ours) [block-causal]" in table
+    own = entries["mmada_rwr@block-causal"]["histories"]["s0"][-1]["success_once"]
+    assert f"| {own:.2f} |" in table.split("at equal online env steps")[1].split("[block-causal]")[1].splitlines()[0]
+    for bad in ([str(runs), str(other)], [f"=={other}"], [f"x={runs}", f"x={other}"]):  # two unnamed; no name; one name twice
+        with pytest.raises(SystemExit):
+            compare.main(["report", "--runs", *bad, "--out", str(tmp_path / "bad")])
 
 
 def test_comparison_help_lists_every_method_with_its_label(capsys):

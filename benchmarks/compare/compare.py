@@ -13,6 +13,9 @@
         --runs runs/compare_fov60 --budget 24000 --eval-every 4000 --eval-episodes 50
     # tables and curves from whatever runs exist
     python benchmarks/compare/compare.py report --task PickCube-v1 PushCube-v1
+    # several run directories side by side, each but the first named (its methods' labels say which)
+    python benchmarks/compare/compare.py report --task PushCube-v1 \
+        --runs runs/compare_fov60 "block-causal pretraining=runs/compare_fov60_blockcausal"
 
 Every method is one of the project's recipes run as a subprocess into
 ``--runs/{task}/{method}/s{seed}`` (default ``runs/compare``); a run directory
@@ -28,6 +31,9 @@ line at env step 0.
 ``success_once`` over seeds at equal online env steps (``--at``), and, for our fine-tuning runs, the successes of
 the episodes their sampled policy finished while collecting, per ``--window`` env steps (the evaluations decode
 greedily, so this is the one measure of the stochastic policy that fine-tuning trains, at no extra cost).
+``report --runs`` takes several directories, ``PATH`` or ``NAME=PATH`` (e.g. the same methods started from other
+pretrained policies): each named directory's methods are reported as their own rows and curves, ``NAME`` in their
+labels and ``METHOD@NAME`` as their key in ``compare.json``.
 """
 from __future__ import annotations
 
@@ -40,7 +46,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from common import RESULTS, markdown_table, write_results  # noqa: E402
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 from pretraining import read_scalar  # noqa: E402
 
 #: filtered self-imitation: sparse reward, episode returns as advantages, binary weights
@@ -216,10 +222,10 @@ def budget_table(results: dict, budgets: list[int]) -> str:
     seeds than the row has says how many."""
     rows = []
     for task, methods in results.items():
-        for method, entry in methods.items():
+        for entry in methods.values():
             cells = []
             for b in budgets:
-                mean, n = mean_at(entry["histories"], b, METHODS[method][3])
+                mean, n = mean_at(entry["histories"], b, entry["online"])
                 more = "" if n == len(entry["histories"]) else f" ({n})"
                 cells.append(f"{mean:.2f}{more}" if mean is not None else "-")
             rows.append([task, entry["label"], entry["observations"], len(entry["histories"]), *cells])
@@ -271,40 +277,63 @@ def decoding_of(history: list[dict]) -> str:
     return f", sampled at T={sampled:g}" if sampled else ""
 
 
+def run_rows(task: str, entry: dict) -> list[list]:
+    """One table row per seed of a method's entry in the report: its first and last evaluation."""
+    rows = []
+    for s, h in entry["histories"].items():
+        first, last = h[0], h[-1]
+        ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
+              if last.get("success_once_ci_low") is not None else "")
+        rows.append([task, entry["label"] + decoding_of(h), entry["observations"], s,
+                     f"{first['success_once']:.2f} @ {first['env_steps']}" if entry["online"] else "-",
+                     f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
+    return rows
+
+
+def named_runs(text: str) -> tuple[str, Path]:
+    """``NAME=PATH`` or ``PATH`` (unnamed), one value of ``report --runs``."""
+    name, sep, path = text.partition("=")
+    if sep and not (name.strip() and path):
+        raise argparse.ArgumentTypeError(f"expected PATH or NAME=PATH, got {text!r}")
+    return (name.strip(), Path(path)) if sep else ("", Path(text))
+
+
 def report(args: argparse.Namespace) -> int:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    names = [name for name, _ in args.runs]
+    if len(set(names)) < len(names):
+        raise SystemExit(f"[compare] report --runs: give each run directory but one its own NAME=PATH, got {names}")
     results, rows = {}, []
     for task in args.task:
-        for method, (label, obs, _, online) in METHODS.items():
-            seeds = sorted(p.name for p in (args.runs / task / method).glob("s*")) if (args.runs / task / method).exists() else []
-            histories = {s: history_of(args.runs / task / method / s, online) for s in seeds}
-            histories = {s: h for s, h in histories.items() if h}
-            if not histories:
-                continue
-            results.setdefault(task, {})[method] = {"label": label, "observations": obs, "histories": histories}
-            rollouts = {s: training_rollouts(args.runs / task / method / s, args.window) for s in histories}
-            if any(rollouts.values()):
-                results[task][method]["rollouts"] = {s: r for s, r in rollouts.items() if r}
-            for s, h in histories.items():
-                first, last = h[0], h[-1]
-                ci = (f"[{last['success_once_ci_low']:.2f}, {last['success_once_ci_high']:.2f}]"
-                      if last.get("success_once_ci_low") is not None else "")
-                rows.append([task, label + decoding_of(h), obs, s,
-                             f"{first['success_once']:.2f} @ {first['env_steps']}" if online else "-",
-                             f"{last['success_once']:.2f} {ci}", last["env_steps"], last.get("episodes", "")])
+        for name, runs in args.runs:
+            for method, (label, obs, _, online) in METHODS.items():
+                runs_of = runs / task / method
+                seeds = sorted(p.name for p in runs_of.glob("s*")) if runs_of.exists() else []
+                histories = {s: history_of(runs_of / s, online) for s in seeds}
+                histories = {s: h for s, h in histories.items() if h}
+                if not histories:
+                    continue
+                entry = results.setdefault(task, {})[f"{method}@{name}" if name else method] = {
+                    "method": method, "label": f"{label} [{name}]" if name else label, "observations": obs,
+                    "online": online, "runs": str(runs), "histories": histories}
+                rollouts = {s: training_rollouts(runs_of / s, args.window) for s in histories}
+                if any(rollouts.values()):
+                    entry["rollouts"] = {s: r for s, r in rollouts.items() if r}
+                rows.extend(run_rows(task, entry))
     if not rows:
-        print(f"[compare] no finished evaluations under {args.runs} for {args.task}; run `compare.py run` first.")
+        print(f"[compare] no finished evaluations under {', '.join(str(r) for _, r in args.runs)} for {args.task}; "
+              "run `compare.py run` first.")
         return 1
     budgets = sorted(args.at) if args.at else budget_grid(results)
     fig, axes = plt.subplots(1, len(args.task), figsize=(7 * len(args.task), 4.5), squeeze=False)
     legends = []
     for ax, task in zip(axes[0], args.task):
-        for i, (method, entry) in enumerate(results.get(task, {}).items()):
-            color, online, n = f"C{i % 10}", METHODS[method][3], len(entry["histories"])
+        for i, entry in enumerate(results.get(task, {}).values()):
+            color, online, n = f"C{i % 10}", entry["online"], len(entry["histories"])
             decoding = decoding_of(next(iter(entry["histories"].values())))
             seen = "" if entry["observations"] == "rgb+proprio" else f", {entry['observations']}"
             name = f"{entry['label']}{decoding}{seen} ({'mean of ' if n > 1 else ''}{', '.join(entry['histories'])})"
@@ -327,14 +356,13 @@ def report(args: argparse.Namespace) -> int:
             legend = ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13))
             legend.set_in_layout(False)  # else tight_layout shrinks the axes to fit it; savefig takes it in below
             legends.append(legend)
-    fig.tight_layout()
-    args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "compare.png", dpi=120, bbox_inches="tight", bbox_extra_artists=legends)
+    save_figure(fig, args.out / "compare.png", bbox_inches="tight", bbox_extra_artists=legends)
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
     budget_rows, rollout_rows = budget_table(results, budgets), rollouts_table(results, args.window)
-    write_results("compare", {"runs": str(args.runs), "window": args.window, "results": results},
+    write_results("compare", {"runs": {name: str(path) for name, path in args.runs}, "window": args.window,
+                              "results": results},
                   f"# Offline-to-online comparison\n\n{table}\n\n"
                   f"## success_once at equal online env steps (mean over seeds)\n\n{budget_rows}\n\n"
                   f"## Training rollouts: successes / episodes the acting policy finished, per {args.window:,} env steps\n\n"
@@ -371,7 +399,10 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=run)
     r = sub.add_parser("report", help="tables and curves from the existing runs")
     r.add_argument("--task", nargs="+", default=["PickCube-v1"])
-    r.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
+    r.add_argument("--runs", type=named_runs, nargs="+", default=[("", ROOT / "runs" / "compare")],
+                   metavar="[NAME=]PATH",
+                   help="run directories (as given to `run --runs`); several are reported side by side, all but one "
+                        "named, NAME marking their methods' labels")
     r.add_argument("--out", type=Path, default=RESULTS, help="where compare.{json,md,png} go")
     r.add_argument("--at", type=int, nargs="+", default=None,
                    help="online env-step budgets of the equal-budget table and the mean curves (default: every 5000 "
