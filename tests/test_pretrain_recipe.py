@@ -64,6 +64,42 @@ def test_resume_continues_from_the_same_step_with_the_same_rng(toy_run, pick_dem
         torch.testing.assert_close(w_resumed[key], w_original[key], rtol=1e-5, atol=1e-6)
 
 
+def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(toy_run, pick_demos, tmp_path):
+    common = [f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6", "checkpoint.interval=3",
+              "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1", "ema.enabled=true"]
+    averaged = tmp_path / "ema"  # the toy run's overrides (it fits its tokenizers too), keeping an average
+    proc = run_recipe(f"run_dir={averaged}", *common, "ema.evaluate_raw=true", "eval.episodes=1", "eval.max_episode_steps=10")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    final = json.loads((averaged / "final.json").read_text())
+    assert 0.0 <= final["eval/success_once"] <= 1.0 and 0.0 <= final["eval_raw/success_once"] <= 1.0
+    history = json.loads((averaged / "history.json").read_text())
+    assert [h["train/ema_decay"] for h in history][:2] == [0.0, pytest.approx(1 - 2 ** -0.75)]
+    original = json.loads((toy_run / "history.json").read_text())
+    for a, b in zip(history, original):  # keeping an average does not change training
+        assert a["train/loss"] == pytest.approx(b["train/loss"], rel=1e-5)
+    ckpt = averaged / "checkpoints" / "step_00000006"
+    own = torch.load(ckpt / "trainer.pt", weights_only=False)["extra"]
+    assert own["ema_updates"] == 6
+    saved, plain = weights(ckpt), weights(toy_run / "checkpoints" / "step_00000006")
+    for key in plain:  # the checkpoint's own weights are the plain run's; its model is their average
+        torch.testing.assert_close(own["train_weights"][key], plain[key], rtol=1e-5, atol=1e-6)
+    moved = [k for k in plain if plain[k].is_floating_point() and not torch.allclose(saved[k], plain[k])]
+    assert moved and "token_embedding.weight" in moved
+
+    resumed = tmp_path / "resumed"  # from step 3: both the average and the own weights continue exactly
+    (resumed / "checkpoints").mkdir(parents=True)
+    shutil.copytree(averaged / "checkpoints" / "step_00000003", resumed / "checkpoints" / "step_00000003")
+    proc = run_recipe(f"run_dir={resumed}", *common, f"tokenizers.dir={averaged / 'tokenizers'}", "eval.episodes=0",
+                      "checkpoint.resume=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    again = resumed / "checkpoints" / "step_00000006"
+    own_again = torch.load(again / "trainer.pt", weights_only=False)["extra"]
+    assert own_again["ema_updates"] == 6
+    for key in plain:
+        torch.testing.assert_close(weights(again)[key], saved[key], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(own_again["train_weights"][key], own["train_weights"][key], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize(
     "overrides, message",
     [

@@ -7,18 +7,20 @@ from mmada_rl.training.checkpoint import (
     resume_training,
     save_checkpoint,
 )
-from mmada_rl.training.ema import WeightEMA
+from mmada_rl.training.ema import WeightEMA, ema_checkpointed, resume_own_weights
 from mmada_rl.training.optim import make_optimizer, make_scheduler
 from mmada_rl.training.run import start_run
 
 __all__ = [
     "Checkpoint",
     "WeightEMA",
+    "ema_checkpointed",
     "latest_checkpoint",
     "load_checkpoint",
     "make_logger",
     "make_optimizer",
     "make_scheduler",
+    "resume_own_weights",
     "resume_training",
     "save_checkpoint",
     "start_run",

@@ -17,15 +17,17 @@ Examples:
     ...     ema.update()
     >>> with ema.applied():          # the policy holds the averaged weights here
     ...     evaluate(policy, "PushCube-v1", episodes=20)
+    >>> with ema.checkpointed() as extra:   # saved: the average as the model, the own weights in ``extra``
+    ...     save_checkpoint(run_dir, step, model=policy, ..., extra=extra)
 """
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Iterator
 
 import torch
 
-__all__ = ["WeightEMA"]
+__all__ = ["WeightEMA", "ema_checkpointed", "resume_own_weights"]
 
 
 class WeightEMA:
@@ -72,6 +74,27 @@ class WeightEMA:
             self.shadow[name].copy_(current[name])
 
     @contextmanager
+    def checkpointed(self) -> Iterator[dict]:
+        """Save a checkpoint inside the block: the module holds the average (what a checkpoint's model is: it is
+        evaluated and loaded), and the block receives the checkpoint's ``extra`` entries that let training resume,
+        the module's own weights and the update count (:meth:`resume_from`)."""
+        extra = {"train_weights": {name: value.detach().clone() for name, value in self.module.state_dict().items()},
+                 "ema_updates": self.updates}
+        with self.applied():
+            yield extra
+
+    def resume_from(self, extra: dict) -> bool:
+        """After loading a checkpoint's model (the average) into the module: keep it as the average, give the module
+        its own weights back and continue the update count. False (nothing changed: the average starts from the
+        loaded weights) when the checkpoint kept no average."""
+        if "train_weights" not in extra:
+            return False
+        self.shadow = {name: value.detach().clone() for name, value in self.module.state_dict().items()}
+        self.module.load_state_dict(extra["train_weights"])
+        self.updates = int(extra["ema_updates"])
+        return True
+
+    @contextmanager
     def applied(self) -> Iterator[torch.nn.Module]:
         """Within the block the module holds the averaged weights; its own come back afterwards, even on error."""
         own = {name: value.detach().clone() for name, value in self.module.state_dict().items()}
@@ -80,3 +103,18 @@ class WeightEMA:
             yield self.module
         finally:
             self.module.load_state_dict(own)
+
+
+def ema_checkpointed(ema: WeightEMA | None) -> AbstractContextManager[dict]:
+    """:meth:`WeightEMA.checkpointed`, or an empty ``extra`` for a run that keeps no average."""
+    return ema.checkpointed() if ema is not None else nullcontext({})
+
+
+def resume_own_weights(module: torch.nn.Module, ema: WeightEMA | None, extra: dict) -> None:
+    """After a checkpoint's model was loaded into ``module``, give it the weights training continues from: with an
+    average kept, :meth:`WeightEMA.resume_from`; without one, the module's own weights when the checkpoint saved them
+    (it was written by a run that kept an average), else the loaded weights as they are."""
+    if ema is not None:
+        ema.resume_from(extra)
+    elif "train_weights" in extra:
+        module.load_state_dict(extra["train_weights"])

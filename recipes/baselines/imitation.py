@@ -25,9 +25,9 @@ import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from mmada_rl.training import start_run
+from mmada_rl.training import resume_own_weights, start_run
 from utils import (PREFIX, evaluate, make_data, make_demo_buffer, make_ema, make_logger, make_loss, make_optim, make_policy,
-                   restore_ema, resume, save)
+                   resume, save)
 
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
@@ -43,7 +43,7 @@ def main(cfg: DictConfig) -> None:
     generators = {"sampler": data._rng}  # the window sampler's generator
     start, extra = resume(cfg, run_dir, policy, optimizer, scheduler, generators)
     ema = make_ema(cfg, policy)  # after resume: the average starts from the saved one
-    restore_ema(policy, ema, extra)
+    resume_own_weights(policy, ema, extra)
     averaged = ema.applied if ema is not None else nullcontext
     params = sum(p.numel() for p in policy.parameters())
     print(f"{PREFIX} {cfg.algo}: {buffer.metadata.num_episodes} demos, {len(buffer)} transitions; "

@@ -1,7 +1,6 @@
 """Factories of the imitation-baseline recipe: each ``make_*`` turns one config section into objects."""
 from __future__ import annotations
 
-from contextlib import nullcontext
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -11,7 +10,7 @@ from mmada_rl.baselines import ChunkPolicy, NormalizationStats, RandomShift
 from mmada_rl.data import DemoBuffer, make_window_buffer
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl import training
-from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler, save_checkpoint
+from mmada_rl.training import WeightEMA, ema_checkpointed, make_optimizer, make_scheduler, save_checkpoint
 from mmada_rl.training.demos import open_demos
 
 PREFIX = "[imitation]"
@@ -97,23 +96,11 @@ def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, sched
     return ckpt.step, ckpt.trainer_state["extra"]
 
 
-def restore_ema(policy: ChunkPolicy, ema: WeightEMA | None, extra: dict) -> None:
-    """After :func:`resume`: the average is the policy's loaded weights; the optimizer's own weights come back from ``extra``."""
-    if ema is None or "train_weights" not in extra:
-        return  # no average kept, or a checkpoint without one: the average starts from the loaded weights
-    policy.load_state_dict(extra["train_weights"])
-    ema.updates = int(extra["ema_updates"])
-
-
 def save(cfg: DictConfig, run_dir: Path, step: int, *, policy: ChunkPolicy, ema: WeightEMA | None, optimizer, scheduler,
          config: dict, generators: dict) -> None:
     """Checkpoint ``step``; with a moving average, ``model/`` holds the average (what is evaluated and loaded) and
     ``trainer.pt`` the optimizer's own weights to resume from."""
-    extra, averaged = {}, nullcontext()
-    if ema is not None:
-        extra = {"train_weights": {k: v.detach().clone() for k, v in policy.state_dict().items()}, "ema_updates": ema.updates}
-        averaged = ema.applied()
-    with averaged:
+    with ema_checkpointed(ema) as extra:
         save_checkpoint(run_dir, step, model=policy, optimizer=optimizer, scheduler=scheduler, config=config,
                         generators=generators, extra=extra, keep=int(cfg.checkpoint.keep))
 

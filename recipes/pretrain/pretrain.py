@@ -10,6 +10,9 @@ task when ``tasks`` lists several, the instruction then selecting the task —
 fits the tokenizers (or loads ``tokenizers.dir``), trains the denoiser on chunk windows
 with the masked-diffusion loss, evaluates in ManiSkill every ``eval.interval``
 steps and at the end, and checkpoints atomically every ``checkpoint.interval`` steps.
+With ``ema.enabled=true`` a moving average of the denoiser's weights is what is
+evaluated and saved (``ema.evaluate_raw=true`` also evaluates the optimizer's own
+weights, as ``eval_raw/...``: the two compared within one run).
 """
 from __future__ import annotations
 
@@ -23,10 +26,11 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from mmada_rl.data import window_generators
-from mmada_rl.training import resume_training, save_checkpoint, start_run
+from mmada_rl.training import ema_checkpointed, resume_own_weights, resume_training, save_checkpoint, start_run
 from utils import (
     make_data,
     make_demo_buffers,
+    make_ema,
     make_logger,
     make_loss,
     make_model,
@@ -56,6 +60,18 @@ def evaluate(cfg: DictConfig, model, step: int) -> dict:
     return out
 
 
+def evaluate_saved(cfg: DictConfig, model, ema, step: int) -> dict:
+    """``eval/...`` of the weights the run saves (the moving average with ``ema.enabled``), and with
+    ``ema.evaluate_raw`` ``eval_raw/...`` of the optimizer's own weights."""
+    if ema is None:
+        return evaluate(cfg, model, step)
+    with ema.applied():
+        out = evaluate(cfg, model, step)
+    if cfg.ema.evaluate_raw:
+        out.update({f"eval_raw/{key[len('eval/'):]}": value for key, value in evaluate(cfg, model, step).items()})
+    return out
+
+
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
     run_dir, config = start_run(cfg)
@@ -75,8 +91,10 @@ def main(cfg: DictConfig) -> None:
 
     ckpt = resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer,
                            scheduler=scheduler, generators=generators)
+    ema = make_ema(cfg, model)  # after resume: a saved average is the loaded model
     if ckpt is not None:
         start = ckpt.step
+        resume_own_weights(model.denoiser, ema, ckpt.trainer_state.get("extra", {}))
         print(f"[pretrain] resumed from {ckpt.path} at step {start}")
     params = sum(p.numel() for p in model.denoiser.parameters())
     demos = ", ".join(f"{b.metadata.task}: {b.metadata.num_episodes} demos, {len(b)} transitions" for b in buffers)
@@ -96,12 +114,16 @@ def main(cfg: DictConfig) -> None:
         grad_norm = torch.nn.utils.clip_grad_norm_(model.denoiser.parameters(), float(cfg.optim.grad_clip))
         optimizer.step()
         scheduler.step()
+        if ema is not None:
+            ema.update()
         done = step + 1
         metrics = {f"train/{k}": float(v.detach()) for k, v in losses.items()}
         metrics.update({"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm),
                         "train/lr": scheduler.get_last_lr()[0], "time/step_s": time.perf_counter() - t0})
+        if ema is not None:
+            metrics["train/ema_decay"] = ema.decay()
         if cfg.eval.interval and int(cfg.eval.episodes) > 0 and done % int(cfg.eval.interval) == 0 and done < total:
-            metrics.update(evaluate(cfg, model, done))
+            metrics.update(evaluate_saved(cfg, model, ema, done))
             model.train()
         if done % int(cfg.logger.log_interval) == 0 or done == total or "eval/success_once" in metrics:
             for key, value in metrics.items():
@@ -109,15 +131,16 @@ def main(cfg: DictConfig) -> None:
             history.append({"step": done, **metrics})
         pbar.set_postfix(loss=f"{float(loss.detach()):.3f}", acc=f"{float(losses['action_accuracy']):.2f}")
         if done % int(cfg.checkpoint.interval) == 0 or done == total:
-            save_checkpoint(run_dir, done, model=model, optimizer=optimizer, scheduler=scheduler, config=config,
-                            generators=generators, keep=int(cfg.checkpoint.keep))
+            with ema_checkpointed(ema) as extra:  # the average is the saved model; extra: the weights to resume
+                save_checkpoint(run_dir, done, model=model, optimizer=optimizer, scheduler=scheduler, config=config,
+                                generators=generators, extra=extra, keep=int(cfg.checkpoint.keep))
     pbar.close()
 
     final = {"step": total}
     if total > start and int(cfg.eval.episodes) > 0:
-        final.update(evaluate(cfg, model, total))
+        final.update(evaluate_saved(cfg, model, ema, total))
         for key, value in final.items():
-            if key.startswith("eval/"):
+            if key.startswith(("eval/", "eval_raw/")):
                 logger.log_scalar(key, value, step=total)
     (run_dir / "history.json").write_text(json.dumps(history, indent=2))
     (run_dir / "final.json").write_text(json.dumps(final, indent=2))

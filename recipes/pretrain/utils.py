@@ -14,7 +14,7 @@ from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
-from mmada_rl.training import make_optimizer, make_scheduler
+from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler
 from mmada_rl.training.demos import open_demos
 
 
@@ -109,6 +109,12 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
     )
+
+
+def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
+    """The moving average of the denoiser's weights, evaluated and saved in place of the last ones (``ema.enabled``)."""
+    e = cfg.get("ema")
+    return WeightEMA(model.denoiser, power=float(e.power), max_decay=float(e.max_decay)) if e and e.enabled else None
 
 
 def make_optim(cfg: DictConfig, model: MMaDAModel):
