@@ -1,6 +1,6 @@
-"""Decoding with a conditioning cache: block-causal attention against the paper's bidirectional attention.
+"""Decoding and training with a conditioning cache: block-causal attention against the paper's bidirectional attention.
 
-    python benchmarks/decode_cache.py --layout-from runs/push_fov60_s0 --batch 1 8 --steps 2 5 10
+    python benchmarks/decode_cache.py --layout-from runs/push_fov60_s0 --batch 1 8 --steps 2 5 10 --corruptions 1 2 4
 
 With bidirectional attention every position reads every other, so each of the
 ``N`` decoding steps runs the whole sequence (conditioning included) through the
@@ -18,7 +18,12 @@ weights) this measures, for each batch size ``B`` and step count ``N``:
 * the wall time of one decoded chunk batch (no gradient) with a bidirectional
   denoiser, the block-causal one without its cache, and with it;
 * the wall time of one path-likelihood replay, forward + backward, of ``S``
-  steps of ``--replay-paths`` recorded paths, with and without the cache.
+  steps of ``--replay-paths`` recorded paths, with and without the cache;
+* the wall time of one pretraining step's loss, forward + backward, of
+  ``--train-batch`` windows each corrupted ``C`` times (``--corruptions``;
+  ``MaskedDiffusionLoss(corruptions_per_sample=C)``): bidirectional, block-causal
+  without the cache, and with it (one conditioning pass per window, the targets of
+  its ``C`` corruptions against it).
 
 The three (two) variants run interleaved, ``--repeats`` times each, and the
 ratios are medians of the side-by-side pairs. Writes
@@ -50,6 +55,32 @@ def random_prompts(layout, batch: int, generator: torch.Generator) -> torch.Tens
                            proprio_ids=codes(cfg.proprio_tokens, vocab.proprio_codebook_size))
 
 
+def random_sequences(layout, batch: int, generator: torch.Generator) -> torch.Tensor:
+    """Clean sequences ``[B, L]``: random prompts with random in-range goal and action tokens."""
+    ids = random_prompts(layout, batch, generator)
+    low, high = layout.logit_bounds()
+    targets = layout.target_positions
+    span = (high[targets] - low[targets]).clamp_min(1)
+    ids[:, targets] = low[targets] + (torch.rand(batch, len(targets), generator=generator) * span).long()
+    return ids
+
+
+def interleaved(variants: dict, repeats: int) -> dict[str, list[float]]:
+    """Wall times of each variant's callable, ``repeats`` rounds run side by side after one warm-up round."""
+    times = {name: [] for name in variants}
+    for repeat in range(repeats + 1):
+        for name, fn in variants.items():
+            t = timed(fn)
+            if repeat:
+                times[name].append(t)
+    return times
+
+
+def paired_ratio(times: dict[str, list[float]], a: str, b: str) -> float:
+    """Median of the side-by-side ratios ``a / b``."""
+    return statistics.median(x / y for x, y in zip(times[a], times[b]))
+
+
 def timed(fn) -> float:
     start = time.perf_counter()
     fn()
@@ -65,14 +96,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", nargs="+", type=int, default=[2, 5, 10], help="decoding steps N")
     parser.add_argument("--replay-paths", type=int, default=16, help="paths in one PPO replay (the recipe's minibatch)")
     parser.add_argument("--replay-steps", type=int, default=2, help="decoding steps S replayed per path")
+    parser.add_argument("--train-batch", type=int, default=16, help="windows per pretraining step (maniskill.yaml's)")
+    parser.add_argument("--corruptions", nargs="+", type=int, default=[1, 2, 4],
+                        help="corruptions per window C of the pretraining loss")
     parser.add_argument("--repeats", type=int, default=10, help="side-by-side timings per setting")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="decode_cache")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
-    if min(args.batch + args.steps + [args.replay_paths, args.repeats]) < 1:
-        parser.error("--batch, --steps, --replay-paths and --repeats must be positive.")
+    if min(args.batch + args.steps + args.corruptions + [args.replay_paths, args.repeats, args.train_batch]) < 1:
+        parser.error("--batch, --steps, --replay-paths, --train-batch, --corruptions and --repeats must be positive.")
     if not 0 < args.replay_steps <= max(args.steps):
         parser.error(f"--replay-steps must lie in [1, {max(args.steps)}].")
     torch.set_num_threads(args.threads)
@@ -80,7 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     from mmada_rl.diffusion import DenoiserConfig, MaskedDiffusionDenoiser, MaskedDiffusionSampler, SamplerConfig
     from mmada_rl.diffusion.path import path_log_prob, sample_steps
     from mmada_rl.evaluation import resolve_model_dir
+    from mmada_rl.keys import SEQUENCE_KEY
+    from mmada_rl.objectives import MaskedDiffusionLoss
     from mmada_rl.policy import MMaDAModel
+    from tensordict import TensorDict
 
     layout = MMaDAModel.load(resolve_model_dir(args.layout_from)).layout
     nets = {}
@@ -103,19 +140,13 @@ def main(argv: list[str] | None = None) -> int:
         for steps in args.steps:
             samplers = {name: MaskedDiffusionSampler(SamplerConfig(num_steps=steps, cache_condition=cache))
                         for name, (_, cache) in variants.items()}
-            times = {name: [] for name in variants}
-            for repeat in range(args.repeats + 1):  # the first round warms up
-                for name, (net, _) in variants.items():
-                    t = timed(lambda: samplers[name].sample(net, prompts, greedy=True))
-                    if repeat:
-                        times[name].append(t)
+            times = interleaved({name: (lambda name=name, net=net: samplers[name].sample(net, prompts, greedy=True))
+                                 for name, (net, _) in variants.items()}, args.repeats)
             record = {"batch": batch, "num_steps": steps}
             for name in variants:
                 record[f"{name} ms"] = 1000 * statistics.median(times[name])
-            record["cache / block-causal"] = statistics.median(
-                [a / b for a, b in zip(times["block-causal + cache"], times["block-causal"])])
-            record["cache / bidirectional"] = statistics.median(
-                [a / b for a, b in zip(times["block-causal + cache"], times["bidirectional"])])
+            record["cache / block-causal"] = paired_ratio(times, "block-causal + cache", "block-causal")
+            record["cache / bidirectional"] = paired_ratio(times, "block-causal + cache", "bidirectional")
             decode.append(record)
             print(record, flush=True)
 
@@ -129,19 +160,36 @@ def main(argv: list[str] | None = None) -> int:
         net.zero_grad(set_to_none=True)
         path_log_prob(net, path, steps=steps, cache_condition=cache).sum().backward()
 
-    replay_times = {True: [], False: []}
-    for repeat in range(args.repeats + 1):
-        for cache in (False, True):
-            t = timed(lambda: replay(cache))
-            if repeat:
-                replay_times[cache].append(t)
+    replay_times = interleaved({"block-causal": lambda: replay(False), "block-causal + cache": lambda: replay(True)},
+                               args.repeats)
     replay_record = {
         "paths": args.replay_paths, "replayed_steps": args.replay_steps, "num_steps": path.num_steps,
-        "block-causal ms": 1000 * statistics.median(replay_times[False]),
-        "block-causal + cache ms": 1000 * statistics.median(replay_times[True]),
-        "cache / block-causal": statistics.median([a / b for a, b in zip(replay_times[True], replay_times[False])]),
+        "block-causal ms": 1000 * statistics.median(replay_times["block-causal"]),
+        "block-causal + cache ms": 1000 * statistics.median(replay_times["block-causal + cache"]),
+        "cache / block-causal": paired_ratio(replay_times, "block-causal + cache", "block-causal"),
     }
     print(replay_record, flush=True)
+
+    windows = TensorDict({SEQUENCE_KEY: random_sequences(layout, args.train_batch, generator)}, batch_size=[args.train_batch])
+    training = []
+    for copies in args.corruptions:
+        losses = {name: MaskedDiffusionLoss(net.train(), schedule="cosine", corruptions_per_sample=copies,
+                                            cache_condition=cache) for name, (net, cache) in variants.items()}
+
+        def step(loss_fn) -> None:
+            loss_fn.zero_grad(set_to_none=True)
+            out = loss_fn(windows)
+            (out["loss_action"] + out["loss_goal"]).backward()
+
+        times = interleaved({name: (lambda fn=fn: step(fn)) for name, fn in losses.items()}, args.repeats)
+        record = {"windows": args.train_batch, "corruptions": copies}
+        for name in variants:
+            record[f"{name} ms"] = 1000 * statistics.median(times[name])
+        record["cache / block-causal"] = paired_ratio(times, "block-causal + cache", "block-causal")
+        record["cache / bidirectional"] = paired_ratio(times, "block-causal + cache", "bidirectional")
+        training.append(record)
+        print(record, flush=True)
+    one = training[0]["block-causal + cache ms"] if args.corruptions[0] == 1 else None
 
     header = ["B", "N", "bidirectional (ms)", "block-causal (ms)", "block-causal + cache (ms)",
               "cache / block-causal", "cache / bidirectional"]
@@ -157,10 +205,18 @@ def main(argv: list[str] | None = None) -> int:
         + f"\n\nPath-likelihood PPO replay (forward + backward) of {args.replay_steps} of {path.num_steps} steps "
         f"for {args.replay_paths} paths: {replay_record['block-causal ms']:.0f} ms without the cache, "
         f"{replay_record['block-causal + cache ms']:.0f} ms with it (ratio {replay_record['cache / block-causal']:.2f}).\n"
+        f"\n## Pretraining loss, forward + backward, {args.train_batch} windows each corrupted C times\n\n"
+        + markdown_table(["C", "bidirectional (ms)", "block-causal (ms)", "block-causal + cache (ms)",
+                          "cache / block-causal", "cache / bidirectional"] + (["cache: cost vs C = 1"] if one else []),
+                         [[r["corruptions"], f"{r['bidirectional ms']:.0f}", f"{r['block-causal ms']:.0f}",
+                           f"{r['block-causal + cache ms']:.0f}", f"{r['cache / block-causal']:.2f}",
+                           f"{r['cache / bidirectional']:.2f}"]
+                          + ([f"{r['block-causal + cache ms'] / one:.2f}"] if one else []) for r in training])
+        + "\n"
     )
     payload = {"layout_from": args.layout_from, "preset": args.preset, "length": layout.length,
                "conditioning": conditioning, "targets": layout.num_targets, "repeats": args.repeats,
-               "decode": decode, "replay": replay_record}
+               "decode": decode, "replay": replay_record, "training": training}
     json_path, md_path = write_results(args.name, payload, markdown, args.out)
 
     import matplotlib
@@ -168,13 +224,20 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(args.batch), figsize=(4.5 * len(args.batch), 3.5), squeeze=False)
+    panels = len(args.batch) + 1
+    fig, axes = plt.subplots(1, panels, figsize=(4.5 * panels, 3.5), squeeze=False)
     for ax, batch in zip(axes[0], args.batch):
         records = [r for r in decode if r["batch"] == batch]
         for name, style in zip(variants, ("o-", "s--", "^-")):
             ax.plot([r["num_steps"] for r in records], [r[f"{name} ms"] for r in records], style, label=name)
-        ax.set(xlabel="decoding steps N", ylabel="ms per decoded chunk batch", title=f"batch {batch}")
+        ax.set(xlabel="decoding steps N", ylabel="ms per decoded chunk batch", title=f"decoding, batch {batch}")
         ax.legend()
+    ax = axes[0][-1]
+    for name, style in zip(variants, ("o-", "s--", "^-")):
+        ax.plot([r["corruptions"] for r in training], [r[f"{name} ms"] for r in training], style, label=name)
+    ax.set(xlabel="corruptions per window C", ylabel="ms per loss forward + backward",
+           title=f"pretraining loss, {args.train_batch} windows")
+    ax.legend()
     save_figure(fig, args.out / f"{args.name}.png")
     print(f"wrote {json_path}, {md_path} and {args.out / f'{args.name}.png'}")
     return 0

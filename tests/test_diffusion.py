@@ -457,6 +457,67 @@ def test_cached_decoding_and_replay_match_the_uncached_ones(visual, remasking):
                           path_log_prob(net, path, visual=vis, steps=steps, cache_condition=False), atol=1e-5)
 
 
+def loss_and_grads(loss_fn, td, seed=5):
+    """The loss of ``td`` under a fixed forward-process RNG, its diagnostics, and the denoiser's gradients."""
+    loss_fn.generator = torch.Generator().manual_seed(seed)
+    loss_fn.zero_grad()
+    out = loss_fn(td)
+    (out["loss_action"] + out["loss_goal"]).backward()
+    return out, [p.grad.clone() for p in loss_fn.parameters() if p.grad is not None]
+
+
+@pytest.mark.parametrize("visual", [None, "features", "images"])
+@pytest.mark.parametrize("copies", [1, 3])
+def test_loss_with_the_condition_cache_equals_full_passes(visual, copies, monkeypatch):
+    layout = make_layout(interleave=True)
+    net, vis = block_causal_net(layout, visual)
+    td = TensorDict({SEQUENCE_KEY: make_batch(layout, batch=3)}, batch_size=[3])
+    if vis is not None:
+        td["visual"] = vis
+    passes, real = [], MaskedDiffusionDenoiser.cache_condition
+    monkeypatch.setattr(MaskedDiffusionDenoiser, "cache_condition", lambda self, *a: passes.append(a[0].shape[0]) or real(self, *a))
+    results = {}
+    for cached in (True, False):
+        loss_fn = MaskedDiffusionLoss(net, corruptions_per_sample=copies, cache_condition=cached)
+        loss_fn.set_keys(visual="visual")
+        results[cached] = loss_and_grads(loss_fn, td)
+    assert passes == [3]  # one conditioning pass per sample for all its corruptions, only when asked
+    (out, grads), (ref, ref_grads) = results[True], results[False]
+    assert out["num_scored"] == ref["num_scored"] and out["num_scored"] > 0
+    for key in ("loss_action", "loss_goal"):
+        torch.testing.assert_close(out[key], ref[key], rtol=1e-5, atol=1e-6)
+    assert len(grads) == len(ref_grads)
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(grads, ref_grads))
+
+
+def test_several_corruptions_per_sample_score_the_repeated_batch():
+    """C corruptions of each sample are the loss of the batch with each sample repeated C times (same RNG draws):
+    each at its own noise level, every one scored."""
+    layout = make_layout()
+    net = tiny(layout, attention="block_causal")
+    seq = make_batch(layout, batch=4)
+    is_pad = torch.zeros(4, K, dtype=torch.bool)
+    is_pad[1, 2:] = True
+    td = TensorDict({SEQUENCE_KEY: seq, ACTION_IS_PAD_KEY: is_pad}, batch_size=[4])
+    repeated = TensorDict({SEQUENCE_KEY: seq.repeat_interleave(3, 0), ACTION_IS_PAD_KEY: is_pad.repeat_interleave(3, 0)},
+                          batch_size=[12])
+    several = MaskedDiffusionLoss(net, corruptions_per_sample=3)
+    out, grads = loss_and_grads(several, td)
+    ref, ref_grads = loss_and_grads(MaskedDiffusionLoss(net), repeated)
+    assert out["num_scored"] == ref["num_scored"]
+    for key in ("loss_action", "loss_goal", "action_accuracy", "noise_level"):
+        torch.testing.assert_close(out[key], ref[key], rtol=1e-5, atol=1e-6)
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(grads, ref_grads))
+    several.generator = torch.Generator().manual_seed(5)
+    scored = several.score(td)
+    assert scored.batch == 4 and scored.noisy.shape[0] == 12 and scored.noise_level.unique().numel() > 4
+    assert torch.equal(scored.sample, scored.rows // 3) and set(scored.sample.tolist()) == {0, 1, 2, 3}
+    given = several.corrupt(td.clone(), generator=torch.Generator().manual_seed(0))  # a given corruption: scored once
+    assert several.score(given).noisy.shape[0] == 4
+    with pytest.raises(ValueError, match="positive integer"):
+        MaskedDiffusionLoss(net, corruptions_per_sample=0)
+
+
 @pytest.mark.parametrize("module", ["schedules", "forward_process", "denoiser", "sampler", "objectives"])
 def test_docstring_examples_run(module):
     import doctest

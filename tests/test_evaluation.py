@@ -220,14 +220,18 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, tmp
 def test_decode_cache_benchmark_times_the_three_variants(toy_pretrain_run, tmp_path):
     bench = load_benchmark("decode_cache")
     assert bench.main(["--layout-from", str(toy_pretrain_run), "--preset", "tiny", "--batch", "2", "--steps", "1", "3",
-                       "--repeats", "1", "--replay-paths", "2", "--replay-steps", "2", "--out", str(tmp_path)]) == 0
+                       "--repeats", "1", "--replay-paths", "2", "--replay-steps", "2", "--train-batch", "2",
+                       "--corruptions", "1", "2", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "decode_cache.json").read_text())
     assert result["conditioning"] + result["targets"] == result["length"]
     assert [(r["batch"], r["num_steps"]) for r in result["decode"]] == [(2, 1), (2, 3)]
     for r in result["decode"]:
         assert all(r[f"{name} ms"] > 0 for name in ("bidirectional", "block-causal", "block-causal + cache"))
     assert result["replay"]["replayed_steps"] == 2 and result["replay"]["block-causal + cache ms"] > 0
-    assert "| 2 | 3 |" in (tmp_path / "decode_cache.md").read_text()
+    assert [(r["windows"], r["corruptions"]) for r in result["training"]] == [(2, 1), (2, 2)]
+    assert all(r["block-causal + cache ms"] > 0 and r["cache / bidirectional"] > 0 for r in result["training"])
+    markdown = (tmp_path / "decode_cache.md").read_text()
+    assert "| 2 | 3 |" in markdown and "Pretraining loss" in markdown and "cost vs C = 1" in markdown
     assert (tmp_path / "decode_cache.png").stat().st_size > 0
     with pytest.raises(SystemExit):
         bench.main(["--layout-from", str(toy_pretrain_run), "--replay-steps", "20", "--out", str(tmp_path)])

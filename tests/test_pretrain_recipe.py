@@ -106,6 +106,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["model.chunk_size=500"], "chunk_size=500 is longer than every episode"),
         (["env.image_size=32"], "image_size=64 but 32 was asked for"),
         (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
+        (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
     ],
 )
 def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):

@@ -25,17 +25,19 @@ ACTION_SEGMENT, GOAL_SEGMENT = SEGMENTS.index("action"), SEGMENTS.index("goal")
 
 
 class ScoredPositions(NamedTuple):
-    """The ``M`` scored positions of a batch (:meth:`MaskedDiffusionLoss.score`)."""
+    """The ``M`` scored positions of a batch of ``B`` samples, each corrupted ``C`` times
+    (``corruptions_per_sample``; :meth:`MaskedDiffusionLoss.score`)."""
 
-    rows: torch.Tensor  # (M,) sample index
+    rows: torch.Tensor  # (M,) row of the corrupted batch (B * C rows: sample b's corruptions are rows b*C .. b*C+C-1)
+    sample: torch.Tensor  # (M,) sample index (rows // C)
     cols: torch.Tensor  # (M,) sequence position
     logits: torch.Tensor  # (M, V)
     targets: torch.Tensor  # (M,) clean ids
     ce: torch.Tensor  # (M,) cross-entropy of the clean id
     segment: torch.Tensor  # (M,) segment id (SEGMENTS order)
-    noisy: torch.Tensor  # (B, L) the denoiser's input
-    noise_level: torch.Tensor  # (B,)
-    visual: torch.Tensor | None  # the denoiser's visual input (features or images), if any
+    noisy: torch.Tensor  # (B * C, L) the denoiser's input
+    noise_level: torch.Tensor  # (B * C,)
+    visual: torch.Tensor | None  # the denoiser's visual input (features or images; B * C rows), if any
     num_scored: torch.Tensor  # () M
     batch: int  # B
 
@@ -66,6 +68,15 @@ class MaskedDiffusionLoss(LossModule):
         condition_mask_prob: also corrupt this fraction of the conditioning
             tokens (multimodal pretraining objective), scored as ``loss_condition``.
         condition_weight: weight of ``loss_condition``.
+        corruptions_per_sample: corrupt each sample this many times, each at
+            its own noise level, and score them all (a given corruption in the
+            input is scored once, as given).
+        cache_condition: with a block-causal denoiser and clean conditioning,
+            run the conditioning once per sample
+            (:meth:`~mmada_rl.diffusion.MaskedDiffusionDenoiser.cache_condition`)
+            and the targets of each corruption against it: the same logits and
+            gradients as full passes, at a fraction of the cost when
+            ``corruptions_per_sample > 1``. Other denoisers run full passes.
 
     Returns (from ``forward``) a TensorDict with ``loss_action``, ``loss_goal``
     (and ``loss_condition`` when ``condition_mask_prob > 0``), plus detached
@@ -125,11 +136,15 @@ class MaskedDiffusionLoss(LossModule):
         goal_weight: float = 1.0,
         condition_mask_prob: float = 0.0,
         condition_weight: float = 1.0,
+        corruptions_per_sample: int = 1,
+        cache_condition: bool = True,
     ) -> None:
         for name, value in (("action_weight", action_weight), ("goal_weight", goal_weight),
                             ("condition_weight", condition_weight)):
             if value < 0:
                 raise ValueError(f"{name} must be >= 0, got {value!r}.")
+        if int(corruptions_per_sample) != corruptions_per_sample or corruptions_per_sample < 1:
+            raise ValueError(f"corruptions_per_sample must be a positive integer, got {corruptions_per_sample!r}.")
         if not 0.0 <= condition_mask_prob <= 1.0:
             raise ValueError(f"condition_mask_prob must lie in [0, 1], got {condition_mask_prob!r}.")
         super().__init__()
@@ -144,6 +159,11 @@ class MaskedDiffusionLoss(LossModule):
         self.goal_weight = float(goal_weight)
         self.condition_mask_prob = float(condition_mask_prob)
         self.condition_weight = float(condition_weight)
+        self.corruptions_per_sample = int(corruptions_per_sample)
+        self.cache_condition = bool(cache_condition)
+        #: each target position's index in ``layout.target_positions``, the order of the cached pass's outputs
+        self._target_index = torch.full((self.layout.length,), -1, dtype=torch.long)
+        self._target_index[self.layout.target_positions] = torch.arange(self.layout.num_targets)
         #: Optional RNG of the forward process (None: torch's global RNG).
         self.generator: torch.Generator | None = None
 
@@ -186,6 +206,14 @@ class MaskedDiffusionLoss(LossModule):
                 valid = valid & self._expand_loss_mask(mask.bool().to(device), valid)
         return valid.reshape(batch)
 
+    def _can_cache(self, net, noisy: torch.Tensor, clean: torch.Tensor) -> bool:
+        """Whether the conditioning may be computed once per sample: a block-causal denoiser, and a corruption
+        that left the conditioning clean (``condition_mask_prob = 0``)."""
+        if not (self.cache_condition and getattr(net, "supports_condition_cache", False)):
+            return False
+        condition = net.condition_positions
+        return torch.equal(noisy[:, condition], clean[:, condition])
+
     # -- loss ----------------------------------------------------------------
     def score(self, tensordict: TensorDictBase) -> ScoredPositions:
         """Corrupt (or read the given corruption), run the denoiser, and return the
@@ -194,7 +222,10 @@ class MaskedDiffusionLoss(LossModule):
         clean = tensordict.get(keys.sequence)
         clean = clean.reshape(-1, clean.shape[-1])  # (B, L)
         batch, device = clean.shape[0], clean.device
-        if tensordict.get(keys.noisy_sequence, None) is not None:
+        given = tensordict.get(keys.noisy_sequence, None) is not None
+        copies = 1 if given else self.corruptions_per_sample  # C
+        rows_clean = clean.repeat_interleave(copies, dim=0) if copies > 1 else clean  # (B * C, L)
+        if given:
             missing = [k for k in (keys.corrupted, keys.noise_level) if tensordict.get(k, None) is None]
             if missing:
                 raise ValueError(
@@ -206,29 +237,37 @@ class MaskedDiffusionLoss(LossModule):
             noise_level = tensordict.get(keys.noise_level).reshape(batch)
         else:
             noisy, corrupted, noise_level = corrupt(
-                clean, layout, self.schedule, self.kernel, self.generator, self.condition_mask_prob
+                rows_clean, layout, self.schedule, self.kernel, self.generator, self.condition_mask_prob
             )
-        visual = None
+        visual = rows_visual = None
         if self.cross_attention:
-            visual = tensordict.get(keys.visual)
-            visual = self.denoiser_network.module.flat_visual(visual, batch)
+            visual = self.denoiser_network.module.flat_visual(tensordict.get(keys.visual), batch)  # (B, ...)
+            rows_visual = visual.repeat_interleave(copies, dim=0) if copies > 1 else visual  # (B*C, ...)
 
-        scored = corrupted & self._sample_valid(tensordict, batch, device)[:, None]  # (B, L)
+        scored = corrupted & self._sample_valid(tensordict, batch, device).repeat_interleave(copies)[:, None]  # (B*C, L)
         is_pad = tensordict.get(keys.action_is_pad, None)
         if is_pad is not None:
             pad = is_pad.reshape(batch, -1).bool().repeat_interleave(layout.config.tokens_per_action, dim=1)
-            scored[:, layout.action_positions.to(device)] &= ~pad
+            scored[:, layout.action_positions.to(device)] &= ~pad.repeat_interleave(copies, dim=0)
 
+        rows, cols = scored.nonzero(as_tuple=True)  # (M,), (M,)
         with self.denoiser_network_params.to_module(self.denoiser_network):
             net = self.denoiser_network.module
-            hidden = net.encode(noisy, noise_level, visual)  # (B, L, D)
-            rows, cols = scored.nonzero(as_tuple=True)  # (M,), (M,)
-            logits = net.project(hidden[rows, cols], cols)  # (M, V)
-        ce = F.cross_entropy(logits, clean[rows, cols], reduction="none")  # (M,)
+            if self._can_cache(net, noisy, rows_clean):
+                cache = net.cache_condition(clean, visual)  # once per sample, with its gradient
+                if copies > 1:
+                    cache = cache.repeat_interleave(copies)
+                hidden = net.encode_targets(noisy, noise_level, cache)  # (B*C, T, D), in target_positions order
+                logits = net.project(hidden[rows, self._target_index.to(device)[cols]], cols)  # (M, V)
+            else:
+                hidden = net.encode(noisy, noise_level, rows_visual)  # (B*C, L, D)
+                logits = net.project(hidden[rows, cols], cols)  # (M, V)
+        targets = rows_clean[rows, cols]
+        ce = F.cross_entropy(logits, targets, reduction="none")  # (M,)
         segment = layout.segment_ids.to(device)[cols]
         return ScoredPositions(
-            rows=rows, cols=cols, logits=logits, targets=clean[rows, cols], ce=ce, segment=segment,
-            noisy=noisy, noise_level=noise_level, visual=visual, num_scored=scored.sum(), batch=batch,
+            rows=rows, sample=rows // copies, cols=cols, logits=logits, targets=targets, ce=ce, segment=segment,
+            noisy=noisy, noise_level=noise_level, visual=rows_visual, num_scored=scored.sum(), batch=batch,
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:

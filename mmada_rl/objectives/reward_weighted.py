@@ -182,9 +182,9 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
 
         # per-sample mean cross-entropy over its scored action tokens
         zeros = torch.zeros(s.batch, device=device)
-        ce = torch.where(weights[s.rows] < 0, s.ce.clamp(max=self.max_negative_nll), s.ce)
-        ce_sum = zeros.index_add(0, s.rows, torch.where(is_action, ce, torch.zeros_like(ce)))
-        count = zeros.index_add(0, s.rows, is_action.float())
+        ce = torch.where(weights[s.sample] < 0, s.ce.clamp(max=self.max_negative_nll), s.ce)
+        ce_sum = zeros.index_add(0, s.sample, torch.where(is_action, ce, torch.zeros_like(ce)))  # over all its corruptions
+        count = zeros.index_add(0, s.sample, is_action.float())
         has_action = count > 0
         per_sample = ce_sum / count.clamp_min(1)
         loss_action = (weights * per_sample * has_action).sum() / has_action.sum().clamp_min(1)
@@ -192,7 +192,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         goal_count = is_goal.sum().clamp_min(1)
         goal_ce = torch.where(is_goal, s.ce, torch.zeros_like(s.ce))
         if self.weight_goal:  # signed weights push goals down too: cap them as the actions' are
-            goal_ce = torch.where(weights[s.rows] < 0, goal_ce.clamp(max=self.max_negative_nll), goal_ce) * weights[s.rows]
+            goal_ce = torch.where(weights[s.sample] < 0, goal_ce.clamp(max=self.max_negative_nll), goal_ce) * weights[s.sample]
         loss_goal = self.goal_weight * goal_ce.sum() / goal_count
         correct = (s.logits.argmax(-1) == s.targets).float()
         out = {
