@@ -81,6 +81,14 @@ def paired_ratio(times: dict[str, list[float]], a: str, b: str) -> float:
     return statistics.median(x / y for x, y in zip(times[a], times[b]))
 
 
+def three_way(times: dict[str, list[float]], **setting) -> dict:
+    """One record of the three variants: the setting, each variant's median ms, the cache's paired ratios."""
+    record = {**setting, **{f"{name} ms": 1000 * statistics.median(t) for name, t in times.items()}}
+    record["cache / block-causal"] = paired_ratio(times, "block-causal + cache", "block-causal")
+    record["cache / bidirectional"] = paired_ratio(times, "block-causal + cache", "bidirectional")
+    return record
+
+
 def timed(fn) -> float:
     start = time.perf_counter()
     fn()
@@ -142,13 +150,8 @@ def main(argv: list[str] | None = None) -> int:
                         for name, (_, cache) in variants.items()}
             times = interleaved({name: (lambda name=name, net=net: samplers[name].sample(net, prompts, greedy=True))
                                  for name, (net, _) in variants.items()}, args.repeats)
-            record = {"batch": batch, "num_steps": steps}
-            for name in variants:
-                record[f"{name} ms"] = 1000 * statistics.median(times[name])
-            record["cache / block-causal"] = paired_ratio(times, "block-causal + cache", "block-causal")
-            record["cache / bidirectional"] = paired_ratio(times, "block-causal + cache", "bidirectional")
-            decode.append(record)
-            print(record, flush=True)
+            decode.append(three_way(times, batch=batch, num_steps=steps))
+            print(decode[-1], flush=True)
 
     net = nets["block_causal"]
     prompts = random_prompts(layout, args.replay_paths, generator)
@@ -171,24 +174,19 @@ def main(argv: list[str] | None = None) -> int:
     print(replay_record, flush=True)
 
     windows = TensorDict({SEQUENCE_KEY: random_sequences(layout, args.train_batch, generator)}, batch_size=[args.train_batch])
+
+    def train_step(loss_fn) -> None:
+        loss_fn.zero_grad(set_to_none=True)
+        out = loss_fn(windows)
+        (out["loss_action"] + out["loss_goal"]).backward()
+
     training = []
     for copies in args.corruptions:
-        losses = {name: MaskedDiffusionLoss(net.train(), schedule="cosine", corruptions_per_sample=copies,
-                                            cache_condition=cache) for name, (net, cache) in variants.items()}
-
-        def step(loss_fn) -> None:
-            loss_fn.zero_grad(set_to_none=True)
-            out = loss_fn(windows)
-            (out["loss_action"] + out["loss_goal"]).backward()
-
-        times = interleaved({name: (lambda fn=fn: step(fn)) for name, fn in losses.items()}, args.repeats)
-        record = {"windows": args.train_batch, "corruptions": copies}
-        for name in variants:
-            record[f"{name} ms"] = 1000 * statistics.median(times[name])
-        record["cache / block-causal"] = paired_ratio(times, "block-causal + cache", "block-causal")
-        record["cache / bidirectional"] = paired_ratio(times, "block-causal + cache", "bidirectional")
-        training.append(record)
-        print(record, flush=True)
+        losses = {name: MaskedDiffusionLoss(denoiser.train(), schedule="cosine", corruptions_per_sample=copies,
+                                            cache_condition=cache) for name, (denoiser, cache) in variants.items()}
+        times = interleaved({name: (lambda fn=fn: train_step(fn)) for name, fn in losses.items()}, args.repeats)
+        training.append(three_way(times, windows=args.train_batch, corruptions=copies))
+        print(training[-1], flush=True)
     one = training[0]["block-causal + cache ms"] if args.corruptions[0] == 1 else None
 
     header = ["B", "N", "bidirectional (ms)", "block-causal (ms)", "block-causal + cache (ms)",
