@@ -332,8 +332,10 @@ def report(args: argparse.Namespace) -> int:
     fig, axes = plt.subplots(1, len(args.task), figsize=(7 * len(args.task), 4.5), squeeze=False)
     legends = []
     for ax, task in zip(axes[0], args.task):
-        for i, entry in enumerate(results.get(task, {}).values()):
-            color, online, n = f"C{i % 10}", entry["online"], len(entry["histories"])
+        entries = list(results.get(task, {}).values())
+        palette = plt.get_cmap("tab10" if len(entries) <= 10 else "tab20")  # a colour per method up to 20
+        for i, entry in enumerate(entries):
+            color, online, n = palette(i % palette.N), entry["online"], len(entry["histories"])
             decoding = decoding_of(next(iter(entry["histories"].values())))
             seen = "" if entry["observations"] == "rgb+proprio" else f", {entry['observations']}"
             name = f"{entry['label']}{decoding}{seen} ({'mean of ' if n > 1 else ''}{', '.join(entry['histories'])})"
