@@ -83,16 +83,15 @@ class WeightEMA:
         with self.applied():
             yield extra
 
-    def resume_from(self, extra: dict) -> bool:
+    def resume_from(self, extra: dict) -> None:
         """After loading a checkpoint's model (the average) into the module: keep it as the average, give the module
-        its own weights back and continue the update count. False (nothing changed: the average starts from the
-        loaded weights) when the checkpoint kept no average."""
+        its own weights back and continue the update count. Nothing changes when the checkpoint kept no average:
+        the average starts from the loaded weights."""
         if "train_weights" not in extra:
-            return False
+            return
         self.shadow = {name: value.detach().clone() for name, value in self.module.state_dict().items()}
         self.module.load_state_dict(extra["train_weights"])
         self.updates = int(extra["ema_updates"])
-        return True
 
     @contextmanager
     def applied(self) -> Iterator[torch.nn.Module]:

@@ -114,8 +114,8 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
 
 def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
     """The moving average of the denoiser's weights, evaluated and saved in place of the last ones (``ema.enabled``)."""
-    e = cfg.get("ema")
-    return WeightEMA(model.denoiser, power=float(e.power), max_decay=float(e.max_decay)) if e and e.enabled else None
+    e = cfg.ema
+    return WeightEMA(model.denoiser, power=float(e.power), max_decay=float(e.max_decay)) if e.enabled else None
 
 
 def make_optim(cfg: DictConfig, model: MMaDAModel):
