@@ -29,7 +29,7 @@ from mmada_rl.baselines import (
 )
 from mmada_rl.evaluation import evaluate, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
-from mmada_rl.training import WeightEMA
+from mmada_rl.training import WeightEMA, optimizer_step
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
@@ -238,6 +238,33 @@ def test_weight_ema_follows_diffusion_policys_schedule_and_swaps_weights_in_and_
     torch.testing.assert_close(module[0].weight, torch.full((2, 2), 5.0))  # even after an error
     with pytest.raises(ValueError, match="max_decay"):
         WeightEMA(module, max_decay=1.0)
+
+
+def test_optimizer_step_sums_the_loss_entries_clips_and_reports_the_step():
+    torch.manual_seed(0)
+    layer = torch.nn.Linear(3, 1)
+    x = torch.randn(8, 3)
+    before = {k: v.detach().clone() for k, v in layer.named_parameters()}
+
+    def outputs() -> dict:
+        y = layer(x).squeeze(-1)
+        return {"loss_a": (y**2).mean(), "loss_b": 3 * y.mean(), "accuracy": torch.tensor(0.25)}  # accuracy: not a loss
+
+    expected = torch.autograd.grad(outputs()["loss_a"] + outputs()["loss_b"], list(layer.parameters()))
+    norm = torch.cat([g.reshape(-1) for g in expected]).norm()
+    optimizer = torch.optim.SGD(layer.parameters(), lr=1.0)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0 if step == 0 else 0.5)
+    ema = WeightEMA(layer, max_decay=0.9)
+    clip = float(norm) / 4  # the step is the gradient scaled down to norm `clip`
+    scalars = optimizer_step(outputs(), layer.parameters(), optimizer, grad_clip=clip, scheduler=scheduler, ema=ema)
+    assert scalars["grad_norm"] == pytest.approx(float(norm), rel=1e-5)  # reported before clipping
+    assert scalars["accuracy"] == 0.25 and scalars["lr"] == 0.5 and scalars["ema_decay"] == 0.0 and ema.updates == 1
+    assert scalars["loss"] == pytest.approx(scalars["loss_a"] + scalars["loss_b"])
+    for (name, param), grad in zip(layer.named_parameters(), expected):  # SGD at lr 1 for this step (the factor: next)
+        torch.testing.assert_close(param.detach(), before[name] - grad * clip / norm, rtol=1e-4, atol=1e-6)
+    assert "lr" not in optimizer_step(outputs(), layer.parameters(), optimizer, grad_clip=1.0)
+    with pytest.raises(ValueError, match="no loss_"):
+        optimizer_step({"accuracy": torch.tensor(1.0)}, layer.parameters(), optimizer, grad_clip=1.0)
 
 
 # -- the recipe, as users run it --------------------------------------------------------

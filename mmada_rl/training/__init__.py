@@ -8,7 +8,7 @@ from mmada_rl.training.checkpoint import (
     save_checkpoint,
 )
 from mmada_rl.training.ema import WeightEMA, ema_checkpointed, resume_own_weights
-from mmada_rl.training.optim import make_optimizer, make_scheduler
+from mmada_rl.training.optim import make_optimizer, make_scheduler, optimizer_step
 from mmada_rl.training.run import start_run
 
 __all__ = [
@@ -20,6 +20,7 @@ __all__ = [
     "make_logger",
     "make_optimizer",
     "make_scheduler",
+    "optimizer_step",
     "resume_own_weights",
     "resume_training",
     "save_checkpoint",

@@ -1,7 +1,8 @@
-"""Optimizer and learning-rate schedule of the recipes (AdamW, linear warm-up, cosine decay)."""
+"""Optimizer, learning-rate schedule (AdamW, linear warm-up, cosine decay) and the gradient step of the recipes."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 
 import torch
 
@@ -24,3 +25,30 @@ def make_scheduler(optimizer, *, warmup_steps: int, total_steps: int, min_lr_rat
         return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def optimizer_step(losses: Mapping[str, torch.Tensor], params: Iterable[torch.nn.Parameter], optimizer,
+                   *, grad_clip: float, scheduler=None, ema=None) -> dict[str, float]:
+    """One update from a loss module's output: back-propagate the sum of its ``loss_*`` entries, clip the
+    gradient norm of ``params`` to ``grad_clip``, step the optimizer, then the scheduler and the weight
+    average (``ema``, a :class:`~mmada_rl.training.ema.WeightEMA`) when given.
+
+    Returns the step's scalars: every entry of ``losses``, ``loss`` (the sum), ``grad_norm`` (before
+    clipping), and ``lr`` / ``ema_decay`` with a scheduler / weight average.
+    """
+    loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
+    if not torch.is_tensor(loss):
+        raise ValueError(f"no loss_* entry to optimize among {sorted(losses.keys())}.")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(params, float(grad_clip))
+    optimizer.step()
+    scalars = {k: float(v.detach()) for k, v in losses.items()}
+    scalars.update(loss=float(loss.detach()), grad_norm=float(grad_norm))
+    if scheduler is not None:
+        scheduler.step()
+        scalars["lr"] = scheduler.get_last_lr()[0]
+    if ema is not None:
+        ema.update()
+        scalars["ema_decay"] = ema.decay()
+    return scalars

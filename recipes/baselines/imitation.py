@@ -21,11 +21,10 @@ import time
 from contextlib import nullcontext
 
 import hydra
-import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from mmada_rl.training import resume_own_weights, start_run
+from mmada_rl.training import optimizer_step, resume_own_weights, start_run
 from utils import (PREFIX, evaluate, make_data, make_demo_buffer, make_ema, make_logger, make_loss, make_optim, make_policy,
                    resume, save)
 
@@ -55,21 +54,11 @@ def main(cfg: DictConfig) -> None:
     pbar = tqdm(range(start, total), initial=start, total=total, desc=cfg.algo)
     for step in pbar:
         t0 = time.perf_counter()
-        losses = loss_module(data.sample())
-        loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), float(cfg.optim.grad_clip))
-        optimizer.step()
-        scheduler.step()
-        if ema is not None:
-            ema.update()
+        scalars = optimizer_step(loss_module(data.sample()), policy.parameters(), optimizer,
+                                 grad_clip=cfg.optim.grad_clip, scheduler=scheduler, ema=ema)
         done = step + 1
-        metrics = {f"train/{k}": float(v.detach()) for k, v in losses.items()}
-        metrics.update({"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm),
-                        "train/lr": scheduler.get_last_lr()[0], "time/step_s": time.perf_counter() - t0})
-        if ema is not None:
-            metrics["train/ema_decay"] = ema.decay()
+        metrics = {f"train/{k}": v for k, v in scalars.items()}
+        metrics["time/step_s"] = time.perf_counter() - t0
         if eval_every and int(cfg.eval.episodes) > 0 and done % eval_every == 0 and done < total:
             with averaged():
                 metrics.update(evaluate(cfg, policy))

@@ -44,7 +44,7 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from mmada_rl.evaluation import evaluate
-from mmada_rl.training import resume_training, save_checkpoint, start_run
+from mmada_rl.training import optimizer_step, resume_training, save_checkpoint, start_run
 from utils import (
     PREFIX,
     check_config,
@@ -103,17 +103,8 @@ def update_value(cfg, value_op, value_optim, rows) -> float:
     return sum(losses) / max(1, len(losses))
 
 
-def gradient_step(cfg, model, optimizer, losses) -> float:
-    loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    grad_norm = torch.nn.utils.clip_grad_norm_(model.denoiser.parameters(), float(cfg.optim.grad_clip))
-    optimizer.step()
-    return float(grad_norm)
-
-
-def logged_step(losses, grad_norm: float) -> dict[str, float]:
-    return {**{k: float(v.detach()) for k, v in losses.items()}, "grad_norm": grad_norm}
+def gradient_step(cfg, model, optimizer, losses) -> dict[str, float]:
+    return optimizer_step(losses, model.denoiser.parameters(), optimizer, grad_clip=cfg.optim.grad_clip)
 
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
@@ -219,7 +210,7 @@ def main(cfg: DictConfig) -> None:
                 model.train()
                 for _ in range(int(cfg.optim.updates_per_batch) if len(online) or not n_online else 0):
                     losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
-                    stepped.append(logged_step(losses, gradient_step(cfg, model, optimizer, losses)))
+                    stepped.append(gradient_step(cfg, model, optimizer, losses))
                     updates += 1
             elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped
                 size = max(1, min(int(cfg.replay_buffer.batch_size), rows.shape[0]))
@@ -229,7 +220,7 @@ def main(cfg: DictConfig) -> None:
                         if demo_anchor is not None:  # the demonstrations' denoising loss, scaled by loss.ppo.demo_coef
                             demo = demo_anchor(mixed_batch(model, None, demo_windows))
                             losses.update({"loss_demo_action": demo["loss_action"], "loss_demo_goal": demo["loss_goal"]})
-                        stepped.append(logged_step(losses, gradient_step(cfg, model, optimizer, losses)))
+                        stepped.append(gradient_step(cfg, model, optimizer, losses))
                         updates += 1
             if stepped:  # means over the iteration's gradient steps (PPO's clip fraction and KL grow over its epochs)
                 metrics.update({f"train/{k}": sum(s[k] for s in stepped) / len(stepped) for k in stepped[0]})

@@ -21,12 +21,18 @@ import time
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from mmada_rl.data import window_generators
-from mmada_rl.training import ema_checkpointed, resume_own_weights, resume_training, save_checkpoint, start_run
+from mmada_rl.training import (
+    ema_checkpointed,
+    optimizer_step,
+    resume_own_weights,
+    resume_training,
+    save_checkpoint,
+    start_run,
+)
 from utils import (
     make_data,
     make_demo_buffers,
@@ -37,7 +43,6 @@ from utils import (
     make_optim,
     make_tokenizers,
     task_list,
-    total_loss,
 )
 
 
@@ -108,20 +113,11 @@ def main(cfg: DictConfig) -> None:
         t0 = time.perf_counter()
         batch = data.sample()
         losses = loss_module(model.loss_inputs(batch))
-        loss = total_loss(losses)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.denoiser.parameters(), float(cfg.optim.grad_clip))
-        optimizer.step()
-        scheduler.step()
-        if ema is not None:
-            ema.update()
+        scalars = optimizer_step(losses, model.denoiser.parameters(), optimizer, grad_clip=cfg.optim.grad_clip,
+                                 scheduler=scheduler, ema=ema)
         done = step + 1
-        metrics = {f"train/{k}": float(v.detach()) for k, v in losses.items()}
-        metrics.update({"train/loss": float(loss.detach()), "train/grad_norm": float(grad_norm),
-                        "train/lr": scheduler.get_last_lr()[0], "time/step_s": time.perf_counter() - t0})
-        if ema is not None:
-            metrics["train/ema_decay"] = ema.decay()
+        metrics = {f"train/{k}": v for k, v in scalars.items()}
+        metrics["time/step_s"] = time.perf_counter() - t0
         if cfg.eval.interval and int(cfg.eval.episodes) > 0 and done % int(cfg.eval.interval) == 0 and done < total:
             metrics.update(evaluate_saved(cfg, model, ema, done))
             model.train()
@@ -129,7 +125,7 @@ def main(cfg: DictConfig) -> None:
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=done)
             history.append({"step": done, **metrics})
-        pbar.set_postfix(loss=f"{float(loss.detach()):.3f}", acc=f"{float(losses['action_accuracy']):.2f}")
+        pbar.set_postfix(loss=f"{scalars['loss']:.3f}", acc=f"{scalars['action_accuracy']:.2f}")
         if done % int(cfg.checkpoint.interval) == 0 or done == total:
             with ema_checkpointed(ema) as extra:  # the average is the saved model; extra: the weights to resume
                 save_checkpoint(run_dir, done, model=model, optimizer=optimizer, scheduler=scheduler, config=config,

@@ -3,9 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDict
 
 from mmada_rl.data import DemoBuffer, MultiTaskWindows, make_window_buffer
 from mmada_rl.diffusion import UniformNoiseSchedule
@@ -129,5 +127,3 @@ def make_logger(cfg: DictConfig, run_dir: Path):
     return training.make_logger(cfg.logger.backend, run_dir)
 
 
-def total_loss(losses: TensorDict) -> torch.Tensor:
-    return sum(v for k, v in losses.items() if k.startswith("loss_"))
