@@ -8,9 +8,20 @@ from pathlib import Path
 from typing import Callable
 
 import pytest
+import torch
 
 #: The repository root (holds pyproject.toml, scripts/ and tests/).
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_torch_thread():
+    """Every test runs torch on one intra-op thread: the tiny models gain nothing from threads, and
+    spinning threads crawl on a busy 2-core machine (recipes run as subprocesses set their own)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

@@ -46,7 +46,6 @@ from mmada_rl.tokenizers import (
     fit_image_tokenizer,
 )
 
-torch.set_num_threads(1)
 # a tokenizer fitted on seven states clips most new ones: expected here, and warned about
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
 LOG_PROBS_KEY = ("vla_action", "log_probs")

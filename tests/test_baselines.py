@@ -31,7 +31,6 @@ from mmada_rl.evaluation import evaluate, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.training import WeightEMA, optimizer_step
 
-torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "baselines" / "imitation.py"
 K, A, S = 4, 7, 29

@@ -29,15 +29,6 @@ from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
 K, D_TOK, TEXT, IMG = 3, 2, 4, 4
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread avoids thread contention on small shared machines."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def make_layout(goal_tokens=4, interleave=False, obs_tokens=IMG):
     vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16))
     return SequenceLayout(LayoutConfig(TEXT, obs_tokens, goal_tokens, K, D_TOK, interleave=interleave), vocab)

@@ -12,7 +12,6 @@ from mmada_rl.evaluation import EVAL_SEED_BASE, eval_seeds, evaluate, resolve_mo
 from test_actor import build_tiny_model  # the tiny policy of the actor tests
 from script_loader import load_script
 
-torch.set_num_threads(1)
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
 
 

@@ -26,7 +26,6 @@ from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_poli
 from mmada_rl.policy.execution import ChunkReward, StepLog
 from script_loader import load_script
 
-torch.set_num_threads(1)
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "finetune" / "finetune.py"

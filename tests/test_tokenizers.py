@@ -104,15 +104,6 @@ def tiny_vq(**overrides) -> VQActionTokenizer:
     return VQActionTokenizer(VQActionTokenizerConfig(**{**TINY_VQ, **overrides}))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny models gain nothing from threads, and spinning threads crawl on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def actions() -> torch.Tensor:
     return robot_actions()

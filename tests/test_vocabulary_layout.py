@@ -12,15 +12,6 @@ from mmada_rl.tokenizers.vocabulary import MODALITIES, UnifiedVocabulary, Vocabu
 K, D_TOK, GRID = 3, 2, (2, 2)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread avoids thread contention on small shared machines."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(params=[0, 5], ids=["no-proprio", "proprio"])
 def vocab(request):
     return UnifiedVocabulary(VocabularyConfig(50, 16, 12, proprio_codebook_size=request.param))
