@@ -125,5 +125,3 @@ def make_optim(cfg: DictConfig, model: MMaDAModel):
 
 def make_logger(cfg: DictConfig, run_dir: Path):
     return training.make_logger(cfg.logger.backend, run_dir)
-
-
