@@ -23,6 +23,7 @@ from mmada_rl.diffusion import (
 from mmada_rl.diffusion.schedules import CosineNoiseSchedule, UniformNoiseSchedule
 from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
+from mmada_rl.objectives.masked_diffusion import gaussian_bin_targets
 from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
 from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
 
@@ -189,6 +190,46 @@ def test_loss_decreases_on_fixed_batch():
         after = loss_fn(probe)
     assert total(after).item() < 0.7 * before, (before, total(after).item())
     assert after["action_accuracy"] > 0.3
+
+
+def test_gaussian_bin_targets_are_ordinal_distributions():
+    soft = gaussian_bin_targets(16, 0.75)
+    torch.testing.assert_close(soft.sum(-1), torch.ones(16))
+    assert torch.equal(soft.argmax(-1), torch.arange(16))
+    c = 8  # an interior id: symmetric, falling with the distance
+    assert torch.allclose(soft[c, c - 3:c], soft[c, c + 1:c + 4].flip(0))
+    assert soft[c, c] > soft[c, c + 1] > soft[c, c + 2] > soft[c, c + 3] > 0
+    assert soft[0, 0] > soft[8, 8]  # the edge keeps the mass that would fall outside the range
+    torch.testing.assert_close(gaussian_bin_targets(16, 0.01), torch.eye(16))  # sigma -> 0: one-hot
+
+
+def test_action_label_sigma_scores_action_tokens_against_gaussian_targets():
+    layout = make_layout()
+    plain = MaskedDiffusionLoss(tiny(layout))
+    smooth = MaskedDiffusionLoss(tiny(layout), action_label_sigma=1.5)
+    td = plain.corrupt(TensorDict({SEQUENCE_KEY: make_batch(layout, batch=4)}, batch_size=[4]),
+                       generator=torch.Generator().manual_seed(0))
+    a, b = plain.score(td), smooth.score(td)
+    torch.testing.assert_close(a.logits, b.logits)  # same weights, same corruption
+    is_action = b.segment == layout.segment_ids[layout.action_positions[0]]
+    assert is_action.any() and (~is_action).any()
+    torch.testing.assert_close(b.ce[~is_action], a.ce[~is_action])  # goal tokens: the clean id's cross-entropy
+    start, stop = layout.vocab.range_of("action")
+    soft = gaussian_bin_targets(stop - start, 1.5)[b.targets[is_action] - start]
+    expected = -(soft * torch.log_softmax(b.logits[is_action, start:stop], -1)).sum(-1)
+    torch.testing.assert_close(b.ce[is_action], expected)
+    assert (b.ce[is_action] != a.ce[is_action]).all()
+    # a prediction one id off costs less than one five ids off; without smoothing they cost the same
+    target = torch.tensor([start + 8])
+    logits = torch.full((2, layout.vocab.size), float("-inf"))
+    logits[:, start:stop] = 0.0
+    logits[0, start + 9] = logits[1, start + 13] = 5.0
+    near, far = smooth._cross_entropy(logits, target.expand(2), torch.ones(2, dtype=torch.bool))
+    assert near < far
+    near, far = plain._cross_entropy(logits, target.expand(2), torch.ones(2, dtype=torch.bool))
+    torch.testing.assert_close(near, far)
+    with pytest.raises(ValueError, match="action_label_sigma must be >= 0"):
+        MaskedDiffusionLoss(tiny(layout), action_label_sigma=-1.0)
 
 
 def test_only_masked_positions_are_scored():

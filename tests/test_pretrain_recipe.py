@@ -107,6 +107,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["env.image_size=32"], "image_size=64 but 32 was asked for"),
         (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
         (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
+        (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
     ],
 )
 def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):
@@ -117,10 +118,12 @@ def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, ov
 
 
 def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
-    """The VQ-vs-bins ablation: ``tokenizers.action_type=bins`` with the bins' own options."""
+    """The VQ-vs-bins ablation: ``tokenizers.action_type=bins`` with the bins' own options (and their Gaussian
+    targets, ``loss.action_label_sigma``)."""
     run_dir = tmp_path / "bins"
     proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=2",
-                      "eval.episodes=0", "tokenizers.action_type=bins", "tokenizers.action.bins.num_bins=32")
+                      "eval.episodes=0", "tokenizers.action_type=bins", "tokenizers.action.bins.num_bins=32",
+                      "loss.action_label_sigma=0.75")
     assert proc.returncode == 0, proc.stderr[-3000:]
     config = json.loads((run_dir / "tokenizers" / "action" / "config.json").read_text())
     assert config["type"] == "UniformBinActionTokenizer" and config["config"]["num_bins"] == 32

@@ -19,9 +19,19 @@ from mmada_rl.diffusion.schedules import NoiseSchedule, make_noise_schedule
 from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.tokenizers.layout import SEGMENTS
 
-__all__ = ["MaskedDiffusionLoss", "ScoredPositions"]
+__all__ = ["MaskedDiffusionLoss", "ScoredPositions", "gaussian_bin_targets"]
 
 ACTION_SEGMENT, GOAL_SEGMENT = SEGMENTS.index("action"), SEGMENTS.index("goal")
+
+
+def gaussian_bin_targets(num_ids: int, sigma: float) -> torch.Tensor:
+    """``[n, n]``: row ``c`` is the mass of ``N(c, sigma^2)`` on each id's interval ``[i - 1/2, i + 1/2]``,
+    renormalised over the ``n`` ids (HL-Gauss soft targets of ordered bins)."""
+    edges = torch.arange(num_ids + 1, dtype=torch.float64) - 0.5  # (n + 1,)
+    centres = torch.arange(num_ids, dtype=torch.float64)[:, None]  # (n, 1)
+    cdf = torch.special.ndtr((edges[None, :] - centres) / sigma)  # (n, n + 1)
+    mass = cdf[:, 1:] - cdf[:, :-1]
+    return (mass / mass.sum(-1, keepdim=True)).float()
 
 
 class ScoredPositions(NamedTuple):
@@ -33,7 +43,7 @@ class ScoredPositions(NamedTuple):
     cols: torch.Tensor  # (M,) sequence position
     logits: torch.Tensor  # (M, V)
     targets: torch.Tensor  # (M,) clean ids
-    ce: torch.Tensor  # (M,) cross-entropy of the clean id
+    ce: torch.Tensor  # (M,) cross-entropy of the clean id (of its soft target: action ids with action_label_sigma)
     segment: torch.Tensor  # (M,) segment id (SEGMENTS order)
     noisy: torch.Tensor  # (B * C, L) the denoiser's input
     noise_level: torch.Tensor  # (B * C,)
@@ -77,6 +87,15 @@ class MaskedDiffusionLoss(LossModule):
             and the targets of each corruption against it: the same logits and
             gradients as full passes, at a fraction of the cost when
             ``corruptions_per_sample > 1``. Other denoisers run full passes.
+        action_label_sigma: > 0 scores each action token against a Gaussian
+            over the neighbouring ids instead of the one clean id (HL-Gauss:
+            Imani & White, 2018; Farebrother et al., 2024, "Stop Regressing"):
+            the mass of ``N(c, sigma^2)`` on each id's interval ``[i - 1/2,
+            i + 1/2]`` around the clean id ``c``, renormalised over the action
+            range; ``sigma`` in ids (0.75 in that paper). Only for ordered
+            action ids, one id per bin (:class:`~mmada_rl.tokenizers.UniformBinActionTokenizer`):
+            a near miss then costs less than a far one. 0 (default): plain
+            cross-entropy.
 
     Returns (from ``forward``) a TensorDict with ``loss_action``, ``loss_goal``
     (and ``loss_condition`` when ``condition_mask_prob > 0``), plus detached
@@ -138,9 +157,10 @@ class MaskedDiffusionLoss(LossModule):
         condition_weight: float = 1.0,
         corruptions_per_sample: int = 1,
         cache_condition: bool = True,
+        action_label_sigma: float = 0.0,
     ) -> None:
         for name, value in (("action_weight", action_weight), ("goal_weight", goal_weight),
-                            ("condition_weight", condition_weight)):
+                            ("condition_weight", condition_weight), ("action_label_sigma", action_label_sigma)):
             if value < 0:
                 raise ValueError(f"{name} must be >= 0, got {value!r}.")
         if int(corruptions_per_sample) != corruptions_per_sample or corruptions_per_sample < 1:
@@ -161,6 +181,12 @@ class MaskedDiffusionLoss(LossModule):
         self.condition_weight = float(condition_weight)
         self.corruptions_per_sample = int(corruptions_per_sample)
         self.cache_condition = bool(cache_condition)
+        self.action_range = self.layout.vocab.range_of("action")
+        #: row ``c``: the soft target of clean action id ``c`` over the action range (None: one-hot)
+        self.action_soft_targets = (
+            gaussian_bin_targets(self.action_range[1] - self.action_range[0], float(action_label_sigma))
+            if action_label_sigma > 0 else None
+        )
         #: each target position's index in ``layout.target_positions``, the order of the cached pass's outputs
         self._target_index = torch.full((self.layout.length,), -1, dtype=torch.long)
         self._target_index[self.layout.target_positions] = torch.arange(self.layout.num_targets)
@@ -263,12 +289,23 @@ class MaskedDiffusionLoss(LossModule):
                 hidden = net.encode(noisy, noise_level, rows_visual)  # (B*C, L, D)
                 logits = net.project(hidden[rows, cols], cols)  # (M, V)
         targets = rows_clean[rows, cols]
-        ce = F.cross_entropy(logits, targets, reduction="none")  # (M,)
         segment = layout.segment_ids.to(device)[cols]
+        ce = self._cross_entropy(logits, targets, segment == ACTION_SEGMENT)  # (M,)
         return ScoredPositions(
             rows=rows, sample=rows // copies, cols=cols, logits=logits, targets=targets, ce=ce, segment=segment,
             noisy=noisy, noise_level=noise_level, visual=rows_visual, num_scored=scored.sum(), batch=batch,
         )
+
+    def _cross_entropy(self, logits: torch.Tensor, targets: torch.Tensor, is_action: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` cross-entropy of each scored position: of the clean id, or for action positions with
+        ``action_label_sigma > 0`` of its Gaussian soft target over the action range."""
+        ce = F.cross_entropy(logits, targets, reduction="none")
+        if self.action_soft_targets is None or not is_action.any():
+            return ce
+        start, stop = self.action_range
+        soft = self.action_soft_targets.to(logits.device)[targets[is_action] - start]  # (Ma, n_action)
+        log_p = F.log_softmax(logits[is_action, start:stop], dim=-1)  # the restricted logits are -inf elsewhere
+        return ce.masked_scatter(is_action, -(soft * log_p).sum(-1))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         layout = self.layout

@@ -10,6 +10,7 @@ from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
+from mmada_rl.tokenizers import UniformBinActionTokenizer
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
 from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler
@@ -103,10 +104,14 @@ def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
 def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     l = cfg.loss
     schedule = UniformNoiseSchedule(float(l.schedule_low), float(l.schedule_high)) if l.schedule == "uniform" else l.schedule
+    sigma = float(l.action_label_sigma)
+    if sigma > 0 and not isinstance(model.action_tokenizer, UniformBinActionTokenizer):
+        raise ValueError(f"loss.action_label_sigma={sigma} smooths the targets over neighbouring bins, so it needs "
+                         f"ordered bin tokens (tokenizers.action_type=bins), not a {type(model.action_tokenizer).__name__}.")
     return MaskedDiffusionLoss(
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
-        corruptions_per_sample=int(l.corruptions_per_sample),
+        corruptions_per_sample=int(l.corruptions_per_sample), action_label_sigma=sigma,
     )
 
 
