@@ -182,11 +182,12 @@ class MaskedDiffusionLoss(LossModule):
         self.corruptions_per_sample = int(corruptions_per_sample)
         self.cache_condition = bool(cache_condition)
         self.action_range = self.layout.vocab.range_of("action")
-        #: row ``c``: the soft target of clean action id ``c`` over the action range (None: one-hot)
-        self.action_soft_targets = (
+        #: row ``c``: the soft target of clean action id ``c`` over the action range (None: one-hot); a buffer,
+        #: so it moves with the loss module to the device instead of at every step
+        self.register_buffer("action_soft_targets", (
             gaussian_bin_targets(self.action_range[1] - self.action_range[0], float(action_label_sigma))
             if action_label_sigma > 0 else None
-        )
+        ), persistent=False)
         #: each target position's index in ``layout.target_positions``, the order of the cached pass's outputs
         self._target_index = torch.full((self.layout.length,), -1, dtype=torch.long)
         self._target_index[self.layout.target_positions] = torch.arange(self.layout.num_targets)
@@ -303,7 +304,7 @@ class MaskedDiffusionLoss(LossModule):
         if self.action_soft_targets is None or not is_action.any():
             return ce
         start, stop = self.action_range
-        soft = self.action_soft_targets.to(logits.device)[targets[is_action] - start]  # (Ma, n_action)
+        soft = self.action_soft_targets[targets[is_action] - start]  # (Ma, n_action)
         log_p = F.log_softmax(logits[is_action, start:stop], dim=-1)  # the restricted logits are -inf elsewhere
         return ce.masked_scatter(is_action, -(soft * log_p).sum(-1))
 
