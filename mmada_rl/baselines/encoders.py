@@ -1,4 +1,4 @@
-"""The observation encoder shared by the baselines, and image augmentation for their training data.
+"""The observation encoder shared by the baselines.
 
 :class:`ObservationEncoder` turns a uint8 RGB image ``[B, 3, H, W]`` and the
 proprioceptive state ``[B, S]`` into one feature vector ``[B, F]``: a small
@@ -8,25 +8,20 @@ by a spatial softmax (Diffusion Policy's and robomimic's choice: the expected
 image coordinates of learned keypoints, which is what locating a cube needs) or
 flattened, and a state MLP, concatenated. Both baselines use it, trained end to end with their head.
 
-:class:`RandomShift` is DrQ's random-shift augmentation (pad by ``pad`` pixels
-with the border, crop back at a random offset), the small-image counterpart of
-Diffusion Policy's random crop. It is a replay-buffer transform: it changes the
-training windows only, never what the policy sees in the env.
+:class:`~mmada_rl.data.augment.RandomShift` (DrQ's random-shift augmentation of
+the training windows, shared with the pretraining recipe) is re-exported here.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
-from tensordict import TensorDictBase
 from torch import nn
-from torchrl.envs.transforms import Transform
 
 from mmada_rl.baselines.normalization import StateStandardizer
+from mmada_rl.data.augment import RandomShift, random_shift
 from mmada_rl.data.windows import kept_state_dims
 from mmada_rl.diffusion.visual import conv_stack
-from mmada_rl.keys import IMAGE_KEY
 
 __all__ = ["EncoderConfig", "ObservationEncoder", "POOLS", "RandomShift", "SpatialSoftmax", "random_shift"]
 
@@ -156,42 +151,3 @@ class SpatialSoftmax(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         attention = self.keypoints(x).flatten(2).softmax(-1)  # (B, N, H*W)
         return (attention @ self.grid).flatten(1)  # (B, 2N)
-
-
-def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
-    """Shift each image of ``[B, C, H, W]`` by up to ``pad`` pixels, filling with the border (same dtype)."""
-    if pad == 0:
-        return images
-    B, C, H, W = images.shape
-    padded = F.pad(images.float(), (pad, pad, pad, pad), mode="replicate")  # (B, C, H+2p, W+2p)
-    dy, dx = torch.randint(0, 2 * pad + 1, (2, B, 1), generator=generator).to(images.device)
-    rows = (dy + torch.arange(H, device=images.device))[:, None, :, None]  # (B, 1, H, 1)
-    cols = (dx + torch.arange(W, device=images.device))[:, None, None, :]  # (B, 1, 1, W)
-    batch = torch.arange(B, device=images.device)[:, None, None, None]
-    channel = torch.arange(C, device=images.device)[None, :, None, None]
-    return padded[batch, channel, rows, cols].to(images.dtype)
-
-
-class RandomShift(Transform):
-    """Replay-buffer transform: :func:`random_shift` of ``("observation", "image")`` (uses torch's global RNG).
-
-    Args:
-        pad: largest shift in pixels (DrQ uses 4 at 84x84).
-        image_key: the images to shift, uint8 ``[B, 3, H, W]``.
-
-    Examples:
-        >>> rb = make_window_buffer(buffer, chunk_size=5, batch_size=32)
-        >>> rb.append_transform(RandomShift(4))
-    """
-
-    def __init__(self, pad: int = 4, image_key=IMAGE_KEY) -> None:
-        if not isinstance(pad, int) or pad < 0:
-            raise ValueError(f"pad must be an int >= 0 (pixels), got {pad!r}.")
-        super().__init__(in_keys=[image_key], out_keys=[image_key])
-        self.pad = pad
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        image = tensordict.get(self.in_keys[0])
-        flat = image.reshape(-1, *image.shape[-3:])
-        tensordict.set(self.out_keys[0], random_shift(flat, self.pad).reshape(image.shape))
-        return tensordict

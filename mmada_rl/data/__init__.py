@@ -1,4 +1,5 @@
 """Demonstration and rollout buffers: collection, storage, import and chunk windows."""
+from mmada_rl.data.augment import RandomShift, random_shift
 from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.windows import (
@@ -18,8 +19,10 @@ __all__ = [
     "ChunkWindowTransform",
     "DemoBuffer",
     "MultiTaskWindows",
+    "RandomShift",
     "kept_state_dims",
     "make_window_buffer",
     "pad_state",
+    "random_shift",
     "window_generators",
 ]

@@ -320,6 +320,11 @@ class MultiTaskWindows:
         ]
         self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()
 
+    def append_transform(self, transform) -> None:
+        """Append ``transform`` to every task's window buffer (as ``ReplayBuffer.append_transform`` does to one)."""
+        for member in self.members:
+            member.append_transform(transform)
+
     @property
     def generators(self) -> dict[str, torch.Generator]:
         """Every generator the batches depend on (checkpointed so a resumed run replays the same batches)."""

@@ -5,9 +5,10 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from mmada_rl.data import DemoBuffer, MultiTaskWindows, make_window_buffer
+from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer
 from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
+from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers import UniformBinActionTokenizer
@@ -90,15 +91,23 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
 
 def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
     """Chunk-window sampler over the demonstrations (seeded, so resumption replays the same batches);
-    with several tasks, every batch mixes their windows (``data.task_weights``)."""
+    with several tasks, every batch mixes their windows (``data.task_weights``). With
+    ``replay_buffer.random_shift`` > 0 the observation image and its goal frame are shifted together."""
     K, batch, seed = int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), int(cfg.seed)
     skips = {"skip_idle_start": bool(cfg.data.get("skip_idle_start", False)),
              "skip_pauses": float(cfg.data.get("skip_pauses", 0.0))}
     if len(buffers) == 1:
-        return make_window_buffer(buffers[0], K, batch, seed=seed, **skips)
-    weights = cfg.data.get("task_weights", "uniform")
-    weights = weights if isinstance(weights, str) else list(weights)
-    return MultiTaskWindows(buffers, K, batch, weights=weights, seed=seed, **skips)
+        data = make_window_buffer(buffers[0], K, batch, seed=seed, **skips)
+    else:
+        weights = cfg.data.get("task_weights", "uniform")
+        weights = weights if isinstance(weights, str) else list(weights)
+        data = MultiTaskWindows(buffers, K, batch, weights=weights, seed=seed, **skips)
+    pad = cfg.replay_buffer.get("random_shift", 0)
+    if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
+        raise ValueError(f"replay_buffer.random_shift={pad!r} must be a whole number of pixels >= 0 (0: off).")
+    if pad:
+        data.append_transform(RandomShift(pad, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))
+    return data
 
 
 def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:

@@ -1,0 +1,73 @@
+"""Image augmentation of training windows.
+
+:class:`RandomShift` is DrQ's random-shift augmentation (Kostrikov et al., 2020):
+pad by ``pad`` pixels with the border, crop back at a random offset, the
+small-image counterpart of Diffusion Policy's random crop. It is a replay-buffer
+transform: it changes the training windows only, never what a policy sees in
+the env. Given several image keys (the observation and the goal frame K steps
+later), every key of one window is shifted by the same offset, as if the camera
+had moved, so a goal image stays aligned with its observation.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from torchrl.envs.transforms import Transform
+
+from mmada_rl.keys import IMAGE_KEY
+
+__all__ = ["RandomShift", "random_shift"]
+
+
+def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Shift each image of ``[B, C, H, W]`` by up to ``pad`` pixels, filling with the border (same dtype)."""
+    if pad == 0:
+        return images
+    B, C, H, W = images.shape
+    padded = F.pad(images.float(), (pad, pad, pad, pad), mode="replicate")  # (B, C, H+2p, W+2p)
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, B, 1), generator=generator).to(images.device)
+    rows = (dy + torch.arange(H, device=images.device))[:, None, :, None]  # (B, 1, H, 1)
+    cols = (dx + torch.arange(W, device=images.device))[:, None, None, :]  # (B, 1, 1, W)
+    batch = torch.arange(B, device=images.device)[:, None, None, None]
+    channel = torch.arange(C, device=images.device)[None, :, None, None]
+    return padded[batch, channel, rows, cols].to(images.dtype)
+
+
+class RandomShift(Transform):
+    """Replay-buffer transform: :func:`random_shift` of the images under ``image_keys`` (uses torch's global RNG).
+
+    Args:
+        pad: largest shift in pixels (DrQ uses 4 at 84x84).
+        image_keys: the images to shift, each ``[..., 3, H, W]`` with the same batch shape and size;
+            one offset per window, shared by all of them.
+
+    Examples:
+        >>> rb = make_window_buffer(buffer, chunk_size=5, batch_size=32)
+        >>> rb.append_transform(RandomShift(4))                                # the observation only
+        >>> rb.append_transform(RandomShift(4, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))  # and its goal frame
+    """
+
+    def __init__(self, pad: int = 4, image_keys: Sequence = (IMAGE_KEY,)) -> None:
+        if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
+            raise ValueError(f"pad must be an int >= 0 (pixels), got {pad!r}.")
+        keys = list(image_keys)
+        if not keys:
+            raise ValueError("image_keys must name at least one image.")
+        super().__init__(in_keys=keys, out_keys=keys)
+        self.pad = pad
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        images = [tensordict.get(key) for key in self.in_keys]
+        shapes = {tuple(image.shape) for image in images}
+        if len(shapes) != 1:
+            raise ValueError(f"RandomShift shifts images of one shape together; {self.in_keys} have {sorted(shapes)}.")
+        shape = images[0].shape
+        # the keys stacked along channels: one random offset per window moves all of them alike
+        flat = torch.cat([image.reshape(-1, *shape[-3:]) for image in images], dim=1)
+        shifted = random_shift(flat, self.pad).split(shape[-3], dim=1)
+        for key, image in zip(self.out_keys, shifted):
+            tensordict.set(key, image.reshape(shape))
+        return tensordict
