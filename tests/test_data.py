@@ -14,7 +14,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
-from mmada_rl.data import BufferMismatchError, DemoBuffer, make_window_buffer
+from mmada_rl.data import BufferMismatchError, DemoBuffer, RandomShift, make_window_buffer
 from mmada_rl.data.windows import idle_actions
 from mmada_rl.data.collect import collect
 from mmada_rl.data.h5_import import import_h5
@@ -136,6 +136,40 @@ def test_window_sampler_never_mixes_episodes_on_real_demos(demo_dir):
     batch = _check_windows(DemoBuffer.open(demo_dir), chunk_size=5, num=300)
     assert batch[ACTION_IS_PAD_KEY].any()  # windows at the episode end are sampled too
     assert batch[INSTRUCTION_KEY][0].startswith("pick up")
+
+
+def _offset_of(shifted: torch.Tensor, original: torch.Tensor, pad: int) -> set[tuple[int, int]]:
+    """Every (dy, dx) whose border-padded crop of ``original`` [3, H, W] is ``shifted``."""
+    H, W = original.shape[-2:]
+    padded = torch.nn.functional.pad(original.float()[None], (pad,) * 4, mode="replicate")[0]
+    return {(dy, dx) for dy in range(2 * pad + 1) for dx in range(2 * pad + 1)
+            if torch.equal(padded[:, dy:dy + H, dx:dx + W].to(original.dtype), shifted)}
+
+
+def test_random_shift_moves_each_windows_observation_and_goal_by_one_offset(demo_dir):
+    buffer = DemoBuffer.open(demo_dir)
+    plain, shifted = (make_window_buffer(buffer, chunk_size=5, batch_size=6, seed=3) for _ in range(2))
+    shifted.append_transform(RandomShift(3, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))
+    torch.manual_seed(0)
+    a, b = plain.sample(), shifted.sample()  # the same windows (same sampler seed), then shifted
+    torch.testing.assert_close(b[ACTION_CHUNK_KEY], a[ACTION_CHUNK_KEY])
+    moved = 0
+    for i in range(6):
+        obs = _offset_of(b[IMAGE_KEY][i], a[IMAGE_KEY][i], 3)
+        goal = _offset_of(b[GOAL_IMAGE_KEY][i], a[GOAL_IMAGE_KEY][i], 3)
+        assert obs & goal  # one offset explains both images of the window
+        moved += (3, 3) not in obs
+    assert moved >= 3  # offsets are drawn per window: most windows move
+
+
+def test_random_shift_refuses_bad_pads_and_images_of_different_shapes():
+    for pad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="pad must be an int >= 0"):
+            RandomShift(pad)
+    td = TensorDict({IMAGE_KEY: torch.zeros(2, 3, 8, 8, dtype=torch.uint8),
+                     GOAL_IMAGE_KEY: torch.zeros(2, 3, 16, 16, dtype=torch.uint8)}, [2])
+    with pytest.raises(ValueError, match="shifts images of one shape together"):
+        RandomShift(2, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY])(td)
 
 
 def _synthetic_buffer(path, lengths):

@@ -11,6 +11,8 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from script_loader import load_script
+
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "pretrain" / "pretrain.py"
 
@@ -108,6 +110,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
         (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
         (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
+        (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
     ],
 )
 def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):
@@ -127,3 +130,24 @@ def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     config = json.loads((run_dir / "tokenizers" / "action" / "config.json").read_text())
     assert config["type"] == "UniformBinActionTokenizer" and config["config"]["num_bins"] == 32
+
+
+def test_random_shift_option_shifts_the_recipes_training_windows(pick_demos):
+    """``replay_buffer.random_shift``: the recipe's windows are the plain ones, images shifted
+    (how: tests/test_data.py, one offset per window for the observation and its goal frame)."""
+    from omegaconf import OmegaConf
+
+    from mmada_rl.keys import ACTION_CHUNK_KEY, GOAL_IMAGE_KEY, IMAGE_KEY, STATE_KEY
+
+    utils = load_script("recipes/pretrain/utils.py", "pretrain_utils")
+    cfg = OmegaConf.load(REPO / "recipes" / "pretrain" / "config" / "toy.yaml")
+    cfg.data.dir, cfg.data.collect_episodes = str(pick_demos), 0
+    buffers = utils.make_demo_buffers(cfg)
+    plain = utils.make_data(cfg, buffers).sample()
+    cfg.replay_buffer.random_shift = 4
+    shifted = utils.make_data(cfg, buffers).sample()  # the same sampler seed: the same windows
+    for key in (ACTION_CHUNK_KEY, STATE_KEY):
+        torch.testing.assert_close(shifted[key], plain[key])
+    for key in (IMAGE_KEY, GOAL_IMAGE_KEY):
+        moved = [not torch.equal(a, b) for a, b in zip(shifted[key], plain[key])]
+        assert sum(moved) >= len(moved) // 2  # 1 offset in 81 leaves a window in place
