@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from mmada_rl.data import DemoBuffer, MultiTaskWindows, pad_state
-from mmada_rl.keys import STATE_KEY, TASK_INDEX_KEY
+from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, pad_state
+from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY, STATE_KEY, TASK_INDEX_KEY
 from mmada_rl.policy.model import instructions_of
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from script_loader import load_script
@@ -58,6 +58,18 @@ def test_same_seed_same_batches(buffers):
     a = MultiTaskWindows(buffers, chunk_size=5, batch_size=16, seed=3).sample()
     b = MultiTaskWindows(buffers, chunk_size=5, batch_size=16, seed=3).sample()
     assert torch.equal(a.get(TASK_INDEX_KEY), b.get(TASK_INDEX_KEY)) and torch.equal(a.get(STATE_KEY), b.get(STATE_KEY))
+
+
+def test_a_transform_appended_to_the_mix_reaches_every_task(buffers):
+    plain = MultiTaskWindows(buffers, chunk_size=5, batch_size=16, seed=3).sample()
+    windows = MultiTaskWindows(buffers, chunk_size=5, batch_size=16, seed=3)
+    windows.append_transform(RandomShift(4, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))
+    shifted = windows.sample()  # the same windows, images shifted
+    tasks = shifted.get(TASK_INDEX_KEY)
+    assert torch.equal(tasks, plain.get(TASK_INDEX_KEY)) and torch.equal(shifted.get(STATE_KEY), plain.get(STATE_KEY))
+    moved = torch.tensor([not torch.equal(a, b) for a, b in zip(shifted.get(IMAGE_KEY), plain.get(IMAGE_KEY))])
+    for i in range(len(buffers)):
+        assert moved[tasks == i].any()
 
 
 @pytest.mark.parametrize("weights", [[1.0], [0.0, 0.0], [-1.0, 2.0], "balanced"])
