@@ -89,14 +89,18 @@ def probed_episode(penv, seed: int, max_decisions: int, probe) -> tuple[list, bo
     return probes, success
 
 
-def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None):
+def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None, action_readout: str | None = None):
     """The policy of ``checkpoint`` (MMaDA-VLA or baseline) in its evaluation env on ``task``:
-    ``(penv, max_decisions)``, as ``mmada-rl eval`` runs it."""
+    ``(penv, max_decisions)``, as ``mmada-rl eval`` runs it (``action_readout``: as its ``--action-readout``)."""
     from mmada_rl.evaluation import eval_env_config, load_actor
-    from mmada_rl.policy import make_policy_env
+    from mmada_rl.policy import MMaDAActor, make_policy_env
 
     actor = load_actor(checkpoint)
     actor.eval()
+    if action_readout is not None:
+        if not isinstance(actor, MMaDAActor):
+            raise SystemExit(f"--action-readout needs an MMaDA-VLA policy; {checkpoint} holds a {type(actor).__name__}.")
+        actor.model.set_action_readout(action_readout)
     cfg = eval_env_config(actor, task, max_episode_steps=max_episode_steps)
     penv = make_policy_env(cfg, actor)
     return penv, -(-cfg.episode_steps // penv.actor.execute_steps) + 1
@@ -112,6 +116,10 @@ def probe_parser(description: str, name: str, task: str):
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's own length")
     parser.add_argument("--threads", type=int, default=1)
+    from mmada_rl.policy import ACTION_READOUTS
+
+    parser.add_argument("--action-readout", choices=ACTION_READOUTS, default=None,
+                        help="MMaDA-VLA only, as mmada-rl eval's option (default: the policy's own)")
     parser.add_argument("--name", default=name)
     parser.add_argument("--out", type=Path, default=RESULTS)
     return parser
@@ -127,7 +135,7 @@ def run_probe(args, task: str, rollout, show=lambda episode: episode) -> tuple[l
     if args.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
     torch.set_num_threads(args.threads)
-    penv, max_decisions = eval_policy_env(args.checkpoint, task, args.max_episode_steps)
+    penv, max_decisions = eval_policy_env(args.checkpoint, task, args.max_episode_steps, args.action_readout)
     episodes = []
     for seed in eval_seeds(args.episodes):
         episodes.append(rollout(penv, seed, max_decisions))

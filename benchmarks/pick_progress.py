@@ -97,7 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     summary = {"episodes": len(episodes), "successes": sum(e["success"] for e in episodes), "grasped": len(held),
                "median_closest_cm": median("closest_cm"), "median_max_above_goal_cm": median("max_above_goal_cm"),
                "median_final_cm": median("final_cm")}
-    payload = {"checkpoint": str(args.checkpoint), "task": TASK, "summary": summary, "episodes": episodes}
+    payload = {"checkpoint": str(args.checkpoint), "task": TASK, "action_readout": args.action_readout,
+               "summary": summary, "episodes": episodes}
+    readout = f" ({args.action_readout} read-out)" if args.action_readout else ""
     fit_table = ""
     if args.demos is not None:
         payload["demo_fit"] = fit = demo_fit(penv.actor, args.demos)
@@ -112,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         [[summary["episodes"], summary["successes"], summary["grasped"], fmt(summary["median_closest_cm"]),
           fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"])]])
     markdown = (f"# How far the policy gets on PickCube-v1: `{args.checkpoint}`\n\n"
-                f"{args.episodes} evaluation seeds, greedy decoding; distances after the first grasp, "
+                f"{args.episodes} evaluation seeds, greedy decoding{readout}; distances after the first grasp, "
                 f"medians over the episodes that grasped.\n\n{table}{fit_table}\n")
     write_results(args.name, payload, markdown, args.out)
     plot(episodes, args.out / f"{args.name}.png", str(args.checkpoint))

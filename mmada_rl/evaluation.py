@@ -44,7 +44,7 @@ from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
 from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
-from mmada_rl.policy.model import MODEL_CONFIG, MMaDAModel
+from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
 __all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "eval_env_config", "eval_seeds", "evaluate", "load_actor",
            "resolve_model_dir", "wilson_interval"]
@@ -136,11 +136,12 @@ class EvalResult:
     per_episode: list[EpisodeResult] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
     sample_temperature: float = 0.0  # 0: greedy decoding; > 0: tokens sampled at this temperature
+    action_readout: str | None = None  # MMaDA-VLA: "token" or "mean" (MMaDAConfig.action_readout); None for baselines
     checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
 
     def to_dict(self) -> dict:
         """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``."""
-        skip = {"task", "seeds", "per_episode", "files", "checkpoint"}
+        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout"}
         return {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
 
     def table(self) -> str:
@@ -154,7 +155,8 @@ class EvalResult:
         ]
         head = (f"{self.task}, {self.episodes} episodes, k={self.execute_steps}"
                 f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps}"
-                f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'} (95% Wilson CI)")
+                f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'}"
+                f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''} (95% Wilson CI)")
         lines = [head, "", "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
         return "\n".join(lines)
 
@@ -238,6 +240,7 @@ def evaluate(
     temporal_ensemble: bool = False,
     num_denoise_steps: int | None = None,
     sample_temperature: float | None = None,
+    action_readout: str | None = None,
     max_episode_steps: int | None = None,
     control_mode: str = "pd_ee_delta_pose",
     image_size: int | None = None,
@@ -267,6 +270,9 @@ def evaluate(
             Every episode draws from torch's RNG seeded with its env seed, so a
             sampled evaluation (or a Diffusion Policy's) repeats exactly; the
             caller's RNG state is left as it was.
+        action_readout: MMaDA policies only: ``"token"`` or ``"mean"``, how greedy chunks
+            become actions (:attr:`~mmada_rl.policy.MMaDAConfig.action_readout`;
+            ``None``: the policy's own).
         max_episode_steps: episode length (``None``: the task registry's).
         control_mode: ManiSkill controller; must match the one the policy was trained in.
         image_size: checked against the policy's image size (``None``: take it).
@@ -291,9 +297,14 @@ def evaluate(
     if sample_temperature is not None and (mmada is None or not sample_temperature > 0):
         raise ValueError("sample_temperature needs an MMaDA-VLA policy and a value > 0 "
                          f"(got {sample_temperature!r} for a {type(actor).__name__}).")
+    if action_readout is not None and mmada is None:
+        raise ValueError(f"action_readout needs an MMaDA-VLA policy (got a {type(actor).__name__}).")
     saved_sampler, penv = mmada.sampler if mmada is not None else None, None
+    saved_readout = mmada.action_readout if mmada is not None else None
     try:
         if mmada is not None:
+            if action_readout is not None:
+                mmada.set_action_readout(action_readout)
             overrides = {"num_steps": num_denoise_steps, "temperature": sample_temperature}
             overrides = {k: v for k, v in overrides.items() if v is not None}
             if overrides:
@@ -331,7 +342,7 @@ def evaluate(
         seconds = time.perf_counter() - start
     finally:
         if mmada is not None:
-            mmada.sampler = saved_sampler
+            mmada.sampler, mmada.action_readout = saved_sampler, saved_readout
         if penv is not None:
             penv.env.close()
 
@@ -347,6 +358,7 @@ def evaluate(
         decode_ms_mean=float(latencies.mean()), decode_ms_p95=float(np.percentile(latencies, 95)),
         env_steps_per_second=sum(r.steps for r in results) / seconds,
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
+        action_readout=(action_readout or saved_readout) if mmada is not None else None,
         checkpoint=str(model) if isinstance(model, (str, Path)) else None,
     )  # fmt: skip
     if out_dir is not None:
@@ -434,6 +446,10 @@ def add_parser(sub) -> None:
     p.add_argument("--sample-temperature", type=float, default=None,
                    help="MMaDA-VLA only: sample the action tokens at this temperature instead of greedy decoding "
                    "(how good the exploration policy of fine-tuning is; default: greedy).")
+    p.add_argument("--action-readout", choices=ACTION_READOUTS, default=None,
+                   help="MMaDA-VLA with uniform-bin action tokens only: how a greedy chunk becomes actions; 'token': the "
+                   "committed bins' centres, 'mean': each dimension's expected value under the distribution its token was "
+                   "committed from (default: the policy's own, MMaDAConfig.action_readout).")
     p.add_argument("--max-episode-steps", type=int, default=None, help="episode length (default: the task registry's).")
     p.add_argument("--control-mode", default="pd_ee_delta_pose", help="ManiSkill controller the policy acts in (default: %(default)s).")
     p.add_argument("--image-size", type=int, default=None, help="camera image side; must match the policy (default: the policy's).")
@@ -458,7 +474,7 @@ def _run_eval(args: argparse.Namespace) -> int:
         result = evaluate(
             model_dir, args.task, args.episodes, seed_offset=args.seed_offset, execute_steps=args.execute_steps,
             temporal_ensemble=args.temporal_ensemble, num_denoise_steps=args.num_denoise_steps,
-            sample_temperature=args.sample_temperature, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
+            sample_temperature=args.sample_temperature, action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
             out_dir=args.out or Path(args.checkpoint) / "eval", video=args.video, goal_grid=args.goal_grid,
             device=args.device, progress=not args.no_progress,
         )  # fmt: skip

@@ -96,6 +96,9 @@ class SampleResult:
     goal_tokens: torch.Tensor | None
     #: The decoding path (for :func:`path_log_prob`).
     path: DecodingPath
+    #: Float ``[B, K, d_tok, V_a]``: the distribution over the local action codes each action
+    #: token was (last) committed from; only when ``sample(..., action_probs=True)``.
+    action_probs: torch.Tensor | None = None
 
 
 def is_greedy(greedy: bool | None = None) -> bool:
@@ -138,6 +141,7 @@ class MaskedDiffusionSampler:
         visual: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
         greedy: bool | None = None,
+        action_probs: bool = False,
     ) -> SampleResult:
         """Decode the target positions of ``ids [B, L]``; conditioning positions are kept as given.
 
@@ -150,6 +154,9 @@ class MaskedDiffusionSampler:
             generator: RNG for the initial noise, token sampling and Gumbel noise.
             greedy: force greedy (True) or sampled (False) decoding; None follows
                 the interaction type.
+            action_probs: also return, per action token, the distribution over its
+                modality's codes at the step that committed it (``SampleResult.action_probs``;
+                a policy reads the expected bin from it, :meth:`MMaDAModel.act`).
         """
         cfg = self.config
         net = unwrap_denoiser(denoiser)
@@ -174,6 +181,9 @@ class MaskedDiffusionSampler:
             "tokens": torch.empty(batch, steps, num_targets, dtype=torch.long, device=device),
             "log_probs": torch.empty(batch, steps, num_targets, device=device),
         }
+        action_index = layout.action_target_index.to(device)  # (K * d_tok,) among the targets
+        action_low, action_high = layout.vocab.range_of("action")
+        probs = torch.zeros(batch, action_index.numel(), action_high - action_low, device=device) if action_probs else None
         cache = None
         if cfg.cache_condition and getattr(net, "supports_condition_cache", False):
             cache, visual = net.cache_condition(x, visual), None  # the conditioning, once for all N steps
@@ -210,6 +220,9 @@ class MaskedDiffusionSampler:
             record["log_probs"][:, n] = torch.where(newly, candidate_logp, torch.zeros_like(candidate_logp))
             x[:, positions] = update
             committed = now_committed
+            if probs is not None:  # the distribution each action token is committed from (at this step's temperature)
+                step_probs = logp[:, action_index, action_low:action_high].exp()  # (B, K * d_tok, V_a)
+                probs = torch.where(newly[:, action_index, None], step_probs, probs)
 
         path = DecodingPath(start_ids=start_ids, temperature=temperature, batch_size=[batch], **record)
         target_ids = x[:, positions]
@@ -220,6 +233,7 @@ class MaskedDiffusionSampler:
             action_tokens=parts["action"],
             goal_tokens=parts.get("goal"),
             path=path,
+            action_probs=None if probs is None else probs.reshape(*parts["action"].shape, -1),
             batch_size=[batch],
         )
 

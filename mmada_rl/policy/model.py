@@ -32,7 +32,7 @@ from mmada_rl.data.windows import kept_state_dims, pad_state
 from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.path import DecodingPath
-from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
+from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig, is_greedy
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
     ACTION_IS_PAD_KEY,
@@ -50,6 +50,10 @@ from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
 MODEL_CONFIG = "model.json"
 MODEL_WEIGHTS = "denoiser.safetensors"
 TOKENIZERS_DIR = "tokenizers"
+
+
+#: How a greedy chunk becomes actions (:attr:`MMaDAConfig.action_readout`).
+ACTION_READOUTS = ("token", "mean")
 
 
 @dataclass
@@ -71,6 +75,11 @@ class MMaDAConfig:
         sampler: parallel-decoding options.
         camera_fov: field of view (degrees) of the camera whose images the policy was
             trained on; ``None``: the task's own. Evaluation builds its env with it.
+        action_readout: how a greedily decoded chunk becomes actions: ``"token"`` (the
+            committed bins' centres, the paper's) or ``"mean"`` (each dimension's expected
+            value under the distribution its token was committed from; uniform-bin action
+            tokens only). Sampled chunks always execute their tokens, so the log-probabilities
+            fine-tuning records describe the executed actions.
     """
 
     chunk_size: int = 5
@@ -82,6 +91,7 @@ class MMaDAConfig:
     denoiser_overrides: dict = field(default_factory=dict)
     sampler: dict = field(default_factory=dict)
     camera_fov: float | None = None
+    action_readout: str = "token"
 
     def __post_init__(self) -> None:
         if not isinstance(self.chunk_size, int) or self.chunk_size < 1:
@@ -89,6 +99,8 @@ class MMaDAConfig:
         self.proprio_drop_dims = sorted({int(d) for d in self.proprio_drop_dims})
         if self.proprio_drop_dims and not self.use_proprio:
             raise ValueError(f"proprio_drop_dims={self.proprio_drop_dims} needs use_proprio=True.")
+        if self.action_readout not in ACTION_READOUTS:
+            raise ValueError(f"action_readout must be one of {ACTION_READOUTS}, got {self.action_readout!r}.")
         self.denoiser_config()  # validates
         self.sampler_config()
 
@@ -181,6 +193,17 @@ class MMaDAModel(nn.Module):
             raise ValueError("the policy's cross-attention needs the denoiser to encode the observation image: "
                              "set denoiser_overrides.visual_encoder_channels (e.g. [32, 64, 128]).")
         self.sampler = MaskedDiffusionSampler(config.sampler_config())
+        self.set_action_readout(config.action_readout)
+
+    def set_action_readout(self, readout: str) -> None:
+        """How greedy chunks become actions from now on (:attr:`MMaDAConfig.action_readout`;
+        evaluation switches it for one run)."""
+        if readout not in ACTION_READOUTS:
+            raise ValueError(f"action_readout must be one of {ACTION_READOUTS}, got {readout!r}.")
+        if readout == "mean" and not self.action_tokenizer.has_ordered_bins:
+            raise ValueError(f"action_readout='mean' needs uniform-bin action tokens; this policy's "
+                             f"{type(self.action_tokenizer).__name__} codes have no mean.")
+        self.action_readout = readout
 
     def _proprio_index(self) -> torch.Tensor:
         """Which of the proprio tokenizer's tokens enter the sequence (all but ``proprio_drop_dims``)."""
@@ -290,12 +313,16 @@ class MMaDAModel(nn.Module):
         """Sample a chunk (and goal image) for a batch of observations ``td`` (batch ``[B]``)."""
         was_training = self.denoiser.training
         self.denoiser.eval()
+        mean = self.action_readout == "mean" and is_greedy(greedy)
         try:
             result = self.sampler.sample(self.denoiser, self.prompt(td), visual=self.visual_input(td),
-                                         greedy=greedy, generator=generator)
+                                         greedy=greedy, generator=generator, action_probs=mean)
         finally:
             self.denoiser.train(was_training)
-        chunk = self.action_tokenizer.decode(result.action_tokens)  # (B, K, A)
+        if mean:
+            chunk = self.action_tokenizer.decode_mean(result.action_probs)  # (B, K, A)
+        else:
+            chunk = self.action_tokenizer.decode(result.action_tokens)  # (B, K, A)
         goal_image = None
         if result.goal_tokens is not None and decode_goal:
             grid = self.image_tokenizer.config.grid_size

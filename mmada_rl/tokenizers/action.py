@@ -169,6 +169,34 @@ class ActionTokenizer(TokenizerIOMixin, ActionTokenizerBase, TensorDictModuleBas
         normed = self._decode_normalized(flat)  # (N, d_a)
         return self.normalizer.denormalize(normed).reshape(*lead, self.action_dim)
 
+    @property
+    def has_ordered_bins(self) -> bool:
+        """Whether each token is one action dimension's bin, so a distribution over a token's codes
+        has a mean (:meth:`decode_mean`)."""
+        return False
+
+    def _bin_centres(self) -> torch.Tensor:
+        """Normalised value ``[vocab_size]`` of each code (tokenizers with ordered bins)."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def decode_mean(self, probs: torch.Tensor) -> torch.Tensor:
+        """Expected action under per-token distributions ``probs [..., d_tok, vocab_size]`` -> env units ``[..., d_a]``.
+
+        Each dimension's value is the probability-weighted mean of its bin centres (the
+        regression read-out of a binned prediction); grippers are snapped to -1 / +1 by the
+        sign of that mean. Only for tokenizers whose tokens are ordered bins of one
+        dimension each (:attr:`has_ordered_bins`): a VQ or FSQ code has no mean.
+        """
+        if not self.has_ordered_bins:
+            raise ValueError(f"{type(self).__name__} codes are not ordered bins of one action dimension, so they "
+                             "have no mean; the mean read-out needs uniform bins (tokenizers.action_type=bins).")
+        if probs.ndim < 2 or probs.shape[-2:] != (self.tokens_per_action, self.vocab_size):
+            raise ValueError(f"probs must have shape [..., {self.tokens_per_action}, {self.vocab_size}], "
+                             f"got {tuple(probs.shape)}.")
+        normed = probs @ self._bin_centres().to(probs)  # (..., d_a)
+        return self.normalizer.denormalize(normed)
+
     def check_tokens(self, tokens: torch.Tensor) -> torch.Tensor:
         """Returns ``tokens`` as long after checking dtype, trailing size and range."""
         tokens = torch.as_tensor(tokens)

@@ -87,3 +87,11 @@ class UniformBinActionTokenizer(ActionTokenizer):
 
     def _decode_normalized(self, tokens: torch.Tensor) -> torch.Tensor:
         return self.bins.decode(tokens)  # (N, d_a), bin centres
+
+    @property
+    def has_ordered_bins(self) -> bool:
+        return True
+
+    def _bin_centres(self) -> torch.Tensor:
+        codes = torch.arange(self.vocab_size)[:, None].expand(-1, self.config.action_dim)  # (V, d_a)
+        return self.bins.decode(codes)[:, 0]  # (V,): the same bins in every dimension

@@ -185,6 +185,8 @@ class SequenceLayout:
         self.is_separator = self._fixed_tokens >= 0
         #: Long ``[L_g + K * d_tok]``: every target position, ascending.
         self.target_positions = self.is_target.nonzero().squeeze(-1)
+        #: Long ``[K * d_tok]``: where each action position (chunk order) sits among the targets.
+        self.action_target_index = torch.searchsorted(self.target_positions, self.action_positions)
 
     def _where(self, segment: str) -> torch.Tensor:
         return (self.segment_ids == SEGMENTS.index(segment)).nonzero().squeeze(-1)
