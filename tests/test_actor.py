@@ -53,17 +53,22 @@ CHUNK = 4  # K of the tiny model
 EPISODE_STEPS = 7  # short episodes: a done falls inside the third chunk of k=3
 
 
-def build_tiny_model(images: torch.Tensor, states: torch.Tensor, actions: torch.Tensor, instruction: str) -> MMaDAModel:
-    """A ~0.1M-parameter policy whose tokenizers are fitted for a couple of steps on the given data."""
+def build_tiny_model(images: torch.Tensor, states: torch.Tensor, actions: torch.Tensor, instruction: str,
+                     action_tokens: str = "vq", **config) -> MMaDAModel:
+    """A ~0.1M-parameter policy whose tokenizers are fitted for a couple of steps on the given data
+    (``action_tokens``: ``"vq"`` codes or 16 uniform ``"bins"`` per dimension; ``config``: MMaDAConfig fields)."""
     image = VQImageTokenizer(VQImageTokenizerConfig(image_size=images.shape[-1], grid_size=8, codebook_size=32, hidden_channels=8, embed_dim=8))
-    action = VQActionTokenizer(VQActionTokenizerConfig(action_dim=actions.shape[-1], codebook_size=16, tokens_per_action=2))
+    if action_tokens == "vq":
+        action = VQActionTokenizer(VQActionTokenizerConfig(action_dim=actions.shape[-1], codebook_size=16, tokens_per_action=2))
+    else:
+        action = UniformBinActionTokenizer(UniformBinActionTokenizerConfig(action_dim=actions.shape[-1], num_bins=16))
     proprio = UniformBinActionTokenizer(UniformBinActionTokenizerConfig(action_dim=states.shape[-1], gripper_dims=(), num_bins=16))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # k-means on a handful of vectors warns about duplicates
         fit_image_tokenizer(image, images, steps=2, batch_size=8, progress=False)
         fit_action_tokenizer(action, actions, steps=2, batch_size=8, progress=False)
         fit_action_tokenizer(proprio, states, progress=False)
-    config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3})
+    config = MMaDAConfig(**{"chunk_size": CHUNK, "denoiser": "tiny", "sampler": {"num_steps": 3}, **config})
     return MMaDAModel(config, Tokenizers(TextTokenizer().fit([instruction]), image, action, proprio)).eval()
 
 
@@ -152,6 +157,31 @@ def test_greedy_is_deterministic_and_random_samples(model, observations):
         sampled = [actor(batch.clone(), generator=torch.Generator().manual_seed(s))[ACTION_TOKENS_KEY] for s in (0, 1, 0)]
     assert not torch.equal(sampled[0], sampled[1])
     assert torch.equal(sampled[0], sampled[2])
+
+
+def test_mean_readout_executes_the_expected_bins_of_greedy_chunks_only(model, observations):
+    """``action_readout="mean"``: a greedy chunk is each dimension's mean under the distribution its token was
+    committed from (the tokens are those of the token read-out); a sampled chunk executes its tokens."""
+    torch.manual_seed(0)
+    bins = build_tiny_model(observations[IMAGE_KEY], observations[STATE_KEY], torch.rand(64, 7) * 2 - 1,
+                            observations[INSTRUCTION_KEY][0], action_tokens="bins", action_readout="mean")
+    batch = observations[:3]
+    mean = bins.act(batch, greedy=True)
+    probs = bins.sampler.sample(bins.denoiser, bins.prompt(batch), greedy=True, action_probs=True).action_probs
+    torch.testing.assert_close(mean.chunk, bins.action_tokenizer.decode_mean(probs))
+    bins.set_action_readout("token")
+    token = bins.act(batch, greedy=True)
+    assert torch.equal(token.action_tokens, mean.action_tokens)
+    assert torch.equal(token.chunk, bins.action_tokenizer.decode(token.action_tokens))
+    assert not torch.allclose(token.chunk, mean.chunk)  # an untrained model's distributions are wide
+    bins.set_action_readout("mean")
+    sampled = bins.act(batch, greedy=False, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(sampled.chunk, bins.action_tokenizer.decode(sampled.action_tokens))
+    with pytest.raises(ValueError, match="action_readout must be one of"):
+        MMaDAConfig(action_readout="median")
+    with pytest.raises(ValueError, match="VQActionTokenizer codes have no mean"):
+        model.set_action_readout("mean")
+    assert model.action_readout == "token"
 
 
 def test_stored_path_log_prob_is_recomputed_exactly(model, observations):

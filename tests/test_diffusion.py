@@ -351,6 +351,29 @@ def test_greedy_is_deterministic_and_sampling_is_not():
     assert not torch.equal(c.ids, d.ids)
 
 
+@pytest.mark.parametrize("remasking", [False, True])
+def test_sampler_returns_the_distribution_each_action_token_was_committed_from(remasking):
+    layout = make_layout(interleave=True)
+    net = tiny(layout).eval()
+    prompt = prompt_of(layout, batch=4)
+    sampler = MaskedDiffusionSampler(SamplerConfig(num_steps=5, remasking=remasking))
+    assert sampler.sample(net, prompt, greedy=True).action_probs is None  # only on request
+    for greedy in (True, False):
+        out = sampler.sample(net, prompt, greedy=greedy, action_probs=True, generator=torch.Generator().manual_seed(0))
+        probs = out.action_probs  # (B, K, d_tok, V_a)
+        assert probs.shape == (4, K, D_TOK, 16)
+        torch.testing.assert_close(probs.sum(-1), torch.ones(4, K, D_TOK))
+        # the probability of each decoded action token is the one recorded at the step that (last) committed it
+        index = layout.action_target_index
+        committed = out.path.committed[:, :, index]  # (B, N, K * d_tok)
+        last = (committed * torch.arange(1, 6)[:, None]).argmax(1)  # (B, K * d_tok)
+        recorded = out.path.log_probs[:, :, index].gather(1, last[:, None]).squeeze(1).exp()
+        chosen = probs.reshape(4, K * D_TOK, 16).gather(-1, out.action_tokens.reshape(4, -1, 1)).squeeze(-1)
+        torch.testing.assert_close(chosen, recorded)
+        if greedy:
+            assert torch.equal(probs.argmax(-1), out.action_tokens)
+
+
 class StubDenoiser(nn.Module):
     """Crafted logits: at step 0 (noise level 1) the first target is confident in token A;
     afterwards the model prefers B there and finds A very unlikely."""

@@ -136,9 +136,38 @@ def test_sampled_evaluation_decodes_with_sampling_at_the_given_temperature(model
         evaluate(model, "PickCube-v1", 1, sample_temperature=0.0)
 
 
+def test_mean_readout_is_switched_for_one_evaluation(model_dir, tmp_path):
+    """``evaluate(..., action_readout="mean")`` decodes greedy chunks by their expected bins for that run only,
+    says so in its outputs, and refuses policies whose action codes have no mean."""
+    from mmada_rl.diffusion.sampler import MaskedDiffusionSampler
+    from mmada_rl.policy import MMaDAModel
+
+    gen = torch.Generator().manual_seed(0)
+    model = build_tiny_model(torch.randint(0, 256, (16, 3, 64, 64), dtype=torch.uint8, generator=gen),
+                             torch.randn(64, 29, generator=gen), torch.rand(64, 7, generator=gen) * 2 - 1,
+                             task_spec("PickCube-v1").instruction, action_tokens="bins")
+    asked, original = [], MaskedDiffusionSampler.sample
+
+    def recording(self, *args, action_probs=False, **kwargs):
+        asked.append(action_probs)
+        return original(self, *args, action_probs=action_probs, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(MaskedDiffusionSampler, "sample", recording)
+        result = evaluate(model, "PickCube-v1", 1, max_episode_steps=4, action_readout="mean", out_dir=tmp_path,
+                          progress=False)
+    assert asked and all(asked)  # every chunk read out by its mean
+    assert result.action_readout == "mean" and "mean read-out" in result.table()
+    assert json.loads((tmp_path / "eval.json").read_text())["action_readout"] == "mean"
+    assert model.action_readout == "token"  # the policy's own read-out is restored
+    with pytest.raises(ValueError, match="codes have no mean"):
+        evaluate(MMaDAModel.load(model_dir), "PickCube-v1", 1, action_readout="mean")
+
+
 def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
     done = run_cli("eval", "--help", timeout=120)
     assert done.returncode == 0 and "--execute-steps" in done.stdout and "--temporal-ensemble" in done.stdout
+    assert "--action-readout {token,mean}" in done.stdout
     assert main(["eval", "--checkpoint", str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("mmada-rl eval: error: no MMaDA policy at") and "\n" not in err
@@ -214,6 +243,9 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, tmp
     assert result["summary"]["episodes"] == 2 and result["summary"]["grasped"] <= 2
     assert "median max height above goal (cm)" in (tmp_path / "pick_progress.md").read_text()
     assert (tmp_path / "pick_progress.png").stat().st_size > 0
+    assert result["action_readout"] is None  # the policy's own
+    with pytest.raises(ValueError, match="codes have no mean"):  # the toy policy's actions are VQ codes
+        bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "1", "--action-readout", "mean"])
 
 
 def test_decode_cache_benchmark_times_the_three_variants(toy_pretrain_run, tmp_path):

@@ -278,6 +278,28 @@ def test_uniform_bins_round_trip_within_half_a_bin(fitted_bins, actions):
     assert torch.equal(rec[:, 6], inside[:, 6])
 
 
+def test_mean_readout_of_bin_distributions(fitted_bins, fitted_vq, fitted_fsq, actions):
+    """``decode_mean``: a one-hot distribution reads its bin's centre, a split one the weighted mean of the
+    centres; grippers follow the sign of their mean; codes without an order have no mean."""
+    tok, norm = fitted_bins, fitted_bins.normalizer
+    tokens = tok.encode(actions[:6].clamp(norm.low, norm.high))  # (6, 7)
+    onehot = torch.nn.functional.one_hot(tokens, tok.vocab_size).float()
+    assert torch.equal(tok.decode_mean(onehot), tok.decode(tokens))
+    low_bin, high_bin = torch.full((1, 7), 10), torch.full((1, 7), 13)
+    split = 0.25 * torch.nn.functional.one_hot(low_bin, 256).float() + 0.75 * torch.nn.functional.one_hot(high_bin, 256).float()
+    expected = 0.25 * tok.decode(low_bin) + 0.75 * tok.decode(high_bin)
+    torch.testing.assert_close(tok.decode_mean(split)[:, :6], expected[:, :6])
+    gripper = torch.zeros(1, 7, 256)
+    gripper[..., 0], gripper[0, 6, 0], gripper[0, 6, 255] = 1.0, 0.3, 0.7  # most mass on "open" (+1)
+    assert tok.decode_mean(gripper)[0, 6] == 1.0
+    with pytest.raises(ValueError, match=r"shape \[\.\.\., 7, 256\]"):
+        tok.decode_mean(torch.ones(2, 7, 255) / 255)
+    for unordered in (fitted_vq[0], fitted_fsq):
+        probs = torch.ones(1, unordered.tokens_per_action, unordered.vocab_size) / unordered.vocab_size
+        with pytest.raises(ValueError, match="no mean"):
+            unordered.decode_mean(probs)
+
+
 @pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.normalize.ActionOutOfRangeWarning")
 def test_vq_round_trip_after_short_fit(fitted_vq):
     tok, result = fitted_vq
