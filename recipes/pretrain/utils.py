@@ -85,6 +85,7 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         denoiser_overrides=OmegaConf.to_container(m.denoiser_overrides),
         sampler={"num_steps": int(m.num_denoise_steps), "schedule": m.sampler_schedule, "kernel": cfg.loss.kernel},
         camera_fov=cfg.env.camera_fov,
+        action_readout=str(m.action_readout),
     )
     return MMaDAModel(config, tokenizers).to(cfg.device)
 
