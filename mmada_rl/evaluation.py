@@ -370,7 +370,8 @@ def evaluate(
 # -- outputs ----------------------------------------------------------------------
 def _write_outputs(out: Path, metrics: EvalResult, videos, goal) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
-    payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint, "seeds": metrics.seeds,
+    payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint,
+               "action_readout": metrics.action_readout, "seeds": metrics.seeds,
                "per_episode": [r._asdict() for r in metrics.per_episode]}
     files = [out / "eval.json", out / "eval.md"]
     files[0].write_text(json.dumps(payload, indent=2))
