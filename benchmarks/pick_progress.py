@@ -8,8 +8,12 @@ seeds as ``mmada-rl eval``) this reads the simulator before every decision:
 whether the gripper holds the cube, and the cube's offset from the goal. It
 reports per episode whether and when the cube was grasped, the closest the cube
 came to the goal, how far **above** the goal it went (a policy that does not
-stop keeps lifting past it) and where it ended. Works with any policy
-``mmada-rl eval`` loads (MMaDA-VLA, BC, Diffusion Policy; RGB or state).
+stop keeps lifting past it), where it ended, and how far the gripper tilted:
+the largest angle between its pointing axis and the one it started the episode
+with (the planner keeps the gripper pointing down and turns it only about that
+axis, so the demonstrations tilt by a few degrees at most; ``--demo-tilt DIR``
+measures theirs from the TCP pose in their recorded states). Works with any
+policy ``mmada-rl eval`` loads (MMaDA-VLA, BC, Diffusion Policy; RGB or state).
 
 With ``--demos DIR`` it also checks the open-loop fit where it matters: on the
 demonstrations' own states after the grasp, the first predicted action's
@@ -32,25 +36,53 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import markdown_table, probe_parser, probed_episode, run_probe, save_figure, write_results  # noqa: E402
 
 TASK = "PickCube-v1"
+#: The TCP's orientation (quaternion, w x y z) in PickCube-v1's observation state, privileged or proprio alike:
+#: qpos (9), qvel (9), is_grasped (1), then the TCP pose: position (3) and this quaternion.
+TCP_QUATERNION = slice(22, 26)
 
 
-def probe(task) -> tuple[bool, list[float]]:
-    """(the gripper holds the cube, cube - goal in cm)."""
+def tilt_deg(start: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Angle (degrees) between the pointing (local z) axes of orientations ``q [..., 4]`` and ``start [..., 4]``
+    (quaternions w x y z): how far the gripper tilted, whatever it turned about that axis."""
+    def z_axis(quat):
+        w, x, y, z = quat.unbind(-1)
+        return torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
+
+    cos = (z_axis(start) * z_axis(q)).sum(-1) / (z_axis(start).norm(dim=-1) * z_axis(q).norm(dim=-1))
+    return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
+
+
+def probe(task) -> tuple[bool, list[float], torch.Tensor]:
+    """(the gripper holds the cube, cube - goal in cm, the TCP's orientation)."""
     offset = 100 * (task.cube.pose.p - task.goal_site.pose.p).reshape(-1)[:3]
-    return bool(task.agent.is_grasping(task.cube).any()), [round(float(v), 2) for v in offset]
+    quaternion = torch.as_tensor(task.agent.tcp.pose.q).reshape(-1)[:4].float()
+    return bool(task.agent.is_grasping(task.cube).any()), [round(float(v), 2) for v in offset], quaternion
 
 
 def rollout(penv, seed: int, max_decisions: int) -> dict:
     probes, success = probed_episode(penv, seed, max_decisions, probe)
-    grasped_at = next((i for i, (held, _) in enumerate(probes) if held), None)
-    distance = [float(torch.tensor(o).norm()) for _, o in probes]
+    grasped_at = next((i for i, (held, _, _) in enumerate(probes) if held), None)
+    distance = [float(torch.tensor(o).norm()) for _, o, _ in probes]
     after = range(grasped_at, len(probes)) if grasped_at is not None else range(0)
+    orientation = torch.stack([q for _, _, q in probes])  # (decisions, 4)
     return {
         "seed": seed, "success": success, "grasped_at_decision": grasped_at,
         "closest_cm": round(min(distance[i] for i in after), 2) if after else None,
         "max_above_goal_cm": round(max(probes[i][1][2] for i in after), 2) if after else None,
         "final_cm": round(distance[-1], 2), "distance_cm": [round(d, 2) for d in distance],
+        "max_tilt_deg": round(float(tilt_deg(orientation[:1], orientation).max()), 2),
     }
+
+
+def demo_tilt(demos: Path) -> dict:
+    """Largest tilt of the gripper in each demonstration (from the TCP pose in its states), summarised."""
+    from mmada_rl.data import DemoBuffer
+    from mmada_rl.keys import STATE_KEY
+
+    buffer = DemoBuffer.open(demos, task=TASK)
+    tilts = [float(tilt_deg(q[:1], q).max()) for q in (e.get(STATE_KEY)[:, TCP_QUATERNION] for e in buffer.episodes())]
+    return {"demos": str(demos), "episodes": len(tilts), "median_max_tilt_deg": round(statistics.median(tilts), 2),
+            "max_tilt_deg": round(max(tilts), 2)}
 
 
 NEAR_CM = 5.0  # "near the goal" for the open-loop fit
@@ -88,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = probe_parser(__doc__, "pick_progress", TASK)
     parser.add_argument("--demos", type=Path, default=None, help="also measure the open-loop fit on these "
                         "PickCube-v1 demonstrations (state observations; for a policy that reads the state)")
+    parser.add_argument("--demo-tilt", type=Path, default=None, help="also report how far the gripper tilts in "
+                        "these PickCube-v1 demonstrations (any observation mode)")
     args = parser.parse_args(argv)
 
     episodes, penv = run_probe(args, TASK, rollout, show=lambda e: {k: v for k, v in e.items() if k != "distance_cm"})
@@ -96,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     median = lambda key: statistics.median(e[key] for e in held) if held else None  # noqa: E731
     summary = {"episodes": len(episodes), "successes": sum(e["success"] for e in episodes), "grasped": len(held),
                "median_closest_cm": median("closest_cm"), "median_max_above_goal_cm": median("max_above_goal_cm"),
-               "median_final_cm": median("final_cm")}
+               "median_final_cm": median("final_cm"),
+               "median_max_tilt_deg": statistics.median(e["max_tilt_deg"] for e in episodes)}
     payload = {"checkpoint": str(args.checkpoint), "task": TASK, "action_readout": args.action_readout,
                "summary": summary, "episodes": episodes}
     readout = f" ({args.action_readout} read-out)" if args.action_readout else ""
@@ -107,12 +142,17 @@ def main(argv: list[str] | None = None) -> int:
             args.demos, markdown_table(["cube–goal", "states", "demonstrated z (mean)", "predicted z (mean)", "mean abs error"],
                                        [[f"< {NEAR_CM:g} cm" if k == "near" else f">= {NEAR_CM:g} cm", v["states"],
                                          v["demo_z_mean"], v["predicted_z_mean"], v["abs_error_z"]] for k, v in fit.items()]))
+    if args.demo_tilt is not None:
+        payload["demo_tilt"] = tilt = demo_tilt(args.demo_tilt)
+        fit_table += (f"\n\nThe demonstrations (`{args.demo_tilt}`, {tilt['episodes']} episodes) tilt the gripper by a "
+                      f"median {tilt['median_max_tilt_deg']:.1f} degrees at most per episode, "
+                      f"{tilt['max_tilt_deg']:.1f} in the worst.\n")
     fmt = lambda v: "–" if v is None else f"{v:.1f}"  # noqa: E731
     table = markdown_table(
         ["episodes", "successes", "grasped", "median closest cube–goal (cm)", "median max height above goal (cm)",
-         "median final cube–goal (cm)"],
+         "median final cube–goal (cm)", "median max tilt (degrees, all episodes)"],
         [[summary["episodes"], summary["successes"], summary["grasped"], fmt(summary["median_closest_cm"]),
-          fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"])]])
+          fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"]), fmt(summary["median_max_tilt_deg"])]])
     markdown = (f"# How far the policy gets on PickCube-v1: `{args.checkpoint}`\n\n"
                 f"{args.episodes} evaluation seeds, greedy decoding{readout}; distances after the first grasp, "
                 f"medians over the episodes that grasped.\n\n{table}{fit_table}\n")

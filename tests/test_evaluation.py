@@ -230,11 +230,25 @@ def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_r
     assert (tmp_path / "push_contact.png").stat().st_size > 0
 
 
-def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, tmp_path):
+def test_tilt_is_the_angle_between_pointing_axes_whatever_the_turn_about_them():
+    tilt = load_benchmark("pick_progress").tilt_deg
+    down = torch.tensor([0.0, 1.0, 0.0, 0.0])  # w x y z: the Panda's TCP pointing at the table
+    c, s = torch.cos(torch.tensor(0.3)), torch.sin(torch.tensor(0.3))
+    turned = torch.tensor([0.0, c, s, 0.0])  # the same, turned 2 * 0.3 rad about the pointing axis
+    tilted = torch.tensor([c * 0, c, 0.0, s])  # 2 * 0.3 rad about a horizontal axis
+    assert float(tilt(down, down)) == 0.0 and float(tilt(down, turned)) < 1e-3
+    torch.testing.assert_close(tilt(down, tilted), torch.rad2deg(torch.tensor(0.6)), rtol=1e-4, atol=1e-3)
+
+
+def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pick_demos, tmp_path):
     bench = load_benchmark("pick_progress")
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
-                       "--out", str(tmp_path)]) == 0
+                       "--out", str(tmp_path), "--demo-tilt", str(pick_demos)]) == 0
     result = json.loads((tmp_path / "pick_progress.json").read_text())
+    # the planner keeps the gripper pointing down: its demonstrations tilt it by a few degrees at most
+    assert result["demo_tilt"]["episodes"] == 2 and 0 <= result["demo_tilt"]["max_tilt_deg"] < 15
+    assert all(0 <= e["max_tilt_deg"] <= 180 for e in result["episodes"])
+    assert "median max tilt" in (tmp_path / "pick_progress.md").read_text()
     assert [e["seed"] for e in result["episodes"]] == eval_seeds(2)
     for e in result["episodes"]:
         assert 1 <= len(e["distance_cm"]) <= 3  # 10 steps at k = 5: two decisions (one more probe at most)
