@@ -159,7 +159,7 @@ def test_greedy_is_deterministic_and_random_samples(model, observations):
     assert torch.equal(sampled[0], sampled[2])
 
 
-def test_mean_readout_executes_the_expected_bins_of_greedy_chunks_only(model, observations):
+def test_mean_readout_executes_the_expected_bins_of_greedy_chunks_only(model, observations, tmp_path):
     """``action_readout="mean"``: a greedy chunk is each dimension's mean under the distribution its token was
     committed from (the tokens are those of the token read-out); a sampled chunk executes its tokens."""
     torch.manual_seed(0)
@@ -177,6 +177,7 @@ def test_mean_readout_executes_the_expected_bins_of_greedy_chunks_only(model, ob
     bins.set_action_readout("mean")
     sampled = bins.act(batch, greedy=False, generator=torch.Generator().manual_seed(0))
     assert torch.equal(sampled.chunk, bins.action_tokenizer.decode(sampled.action_tokens))
+    assert MMaDAModel.load(bins.save(tmp_path / "policy")).action_readout == "mean"  # saved as switched last
     with pytest.raises(ValueError, match="action_readout must be one of"):
         MMaDAConfig(action_readout="median")
     with pytest.raises(ValueError, match="VQActionTokenizer codes have no mean"):

@@ -338,7 +338,7 @@ class MMaDAModel(nn.Module):
             directory / TOKENIZERS_DIR
         )
         payload = {
-            "config": asdict(self.config),
+            "config": {**asdict(self.config), "action_readout": self.action_readout},  # as switched last
             "vocabulary": self.vocab.to_dict(),
             "layout": self.layout.to_dict(),
             "num_parameters": sum(p.numel() for p in self.denoiser.parameters()),
