@@ -56,6 +56,11 @@ TOKENIZERS_DIR = "tokenizers"
 ACTION_READOUTS = ("token", "mean")
 
 
+def _check_action_readout(readout: str) -> None:
+    if readout not in ACTION_READOUTS:
+        raise ValueError(f"action_readout must be one of {ACTION_READOUTS}, got {readout!r}.")
+
+
 @dataclass
 class MMaDAConfig:
     """Architecture of the policy (everything but the tokenizers' own configs).
@@ -99,8 +104,7 @@ class MMaDAConfig:
         self.proprio_drop_dims = sorted({int(d) for d in self.proprio_drop_dims})
         if self.proprio_drop_dims and not self.use_proprio:
             raise ValueError(f"proprio_drop_dims={self.proprio_drop_dims} needs use_proprio=True.")
-        if self.action_readout not in ACTION_READOUTS:
-            raise ValueError(f"action_readout must be one of {ACTION_READOUTS}, got {self.action_readout!r}.")
+        _check_action_readout(self.action_readout)
         self.denoiser_config()  # validates
         self.sampler_config()
 
@@ -198,8 +202,7 @@ class MMaDAModel(nn.Module):
     def set_action_readout(self, readout: str) -> None:
         """How greedy chunks become actions from now on (:attr:`MMaDAConfig.action_readout`;
         evaluation switches it for one run)."""
-        if readout not in ACTION_READOUTS:
-            raise ValueError(f"action_readout must be one of {ACTION_READOUTS}, got {readout!r}.")
+        _check_action_readout(readout)
         if readout == "mean" and not self.action_tokenizer.has_ordered_bins:
             raise ValueError(f"action_readout='mean' needs uniform-bin action tokens; this policy's "
                              f"{type(self.action_tokenizer).__name__} codes have no mean.")
