@@ -48,7 +48,8 @@ def tilt_deg(start: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         w, x, y, z = quat.unbind(-1)
         return torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
 
-    cos = (z_axis(start) * z_axis(q)).sum(-1) / (z_axis(start).norm(dim=-1) * z_axis(q).norm(dim=-1))
+    a, b = z_axis(start), z_axis(q)
+    cos = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1))
     return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
 
 
