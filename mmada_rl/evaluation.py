@@ -19,6 +19,10 @@ Seeds: episode ``i`` is reset with seed ``EVAL_SEED_BASE + seed_offset + i``
 (``EVAL_SEED_BASE = 1_000_000``). Demonstrations and training envs use seeds
 counting up from 0, so the two sets never meet below a million training
 episodes; ``seed_offset`` picks another disjoint block of evaluation episodes.
+``demo_seeds=DIR`` (``--demo-seeds DIR``) instead resets the episodes with the
+seeds of the demonstrations in buffer ``DIR``: their initial states, on which a
+policy trained on them can be measured against the unseen evaluation states
+(memorisation against generalisation).
 """
 from __future__ import annotations
 
@@ -39,6 +43,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from tqdm.auto import tqdm
 
 from mmada_rl.baselines import AGENT_CONFIG, POLICY_CONFIG, is_policy_dir, is_rl_agent_dir, load_policy, load_rl_actor
+from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
@@ -46,7 +51,8 @@ from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
-__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "eval_env_config", "eval_seeds", "evaluate", "load_actor",
+__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "eval_env_config", "eval_seeds", "evaluate",
+           "load_actor",
            "resolve_model_dir", "wilson_interval"]
 
 #: First evaluation seed; training and demonstration seeds count up from 0.
@@ -62,6 +68,20 @@ def eval_seeds(episodes: int, seed_offset: int = 0) -> list[int]:
     if seed_offset < 0:
         raise ValueError(f"seed_offset must be >= 0 (evaluation seeds start at {EVAL_SEED_BASE}), got {seed_offset!r}.")
     return [EVAL_SEED_BASE + seed_offset + i for i in range(episodes)]
+
+
+def demonstration_seeds(buffer_dir: str | Path, episodes: int, task: str | None = None) -> list[int]:
+    """The env seeds of the first ``episodes`` demonstrations in the buffer ``buffer_dir``
+    (their initial states); ``task``, when given, must be the buffer's."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes!r}.")
+    meta = BufferMetadata.load(buffer_dir)
+    if task is not None and meta.task != task:
+        raise ValueError(f"{buffer_dir} holds {meta.task} demonstrations, not {task}.")
+    if episodes > len(meta.seeds):
+        raise ValueError(f"{buffer_dir} holds {len(meta.seeds)} demonstrations; ask for at most that many episodes "
+                         f"(got {episodes}).")
+    return [int(s) for s in meta.seeds[:episodes]]
 
 
 class Interval(NamedTuple):
@@ -138,10 +158,11 @@ class EvalResult:
     sample_temperature: float = 0.0  # 0: greedy decoding; > 0: tokens sampled at this temperature
     action_readout: str | None = None  # MMaDA-VLA: "token" or "mean" (MMaDAConfig.action_readout); None for baselines
     checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
+    demo_seeds: str | None = None  # the buffer whose demonstrations' seeds were run (None: evaluation seeds)
 
     def to_dict(self) -> dict:
         """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``."""
-        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout"}
+        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds"}
         return {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
 
     def table(self) -> str:
@@ -153,10 +174,12 @@ class EvalResult:
             ("decode ms / chunk", f"{self.decode_ms_mean:.1f} (p95 {self.decode_ms_p95:.1f})"),
             ("env steps / s", f"{self.env_steps_per_second:.1f}"),
         ]
+        on_demos = f", on the demonstrations' initial states ({self.demo_seeds})" if self.demo_seeds else ""
         head = (f"{self.task}, {self.episodes} episodes, k={self.execute_steps}"
                 f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps}"
                 f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'}"
-                f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''} (95% Wilson CI)")
+                f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''}"
+                f"{on_demos} (95% Wilson CI)")
         lines = [head, "", "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
         return "\n".join(lines)
 
@@ -236,6 +259,7 @@ def evaluate(
     episodes: int = 50,
     *,
     seed_offset: int = 0,
+    demo_seeds: str | Path | None = None,
     execute_steps: int | None = None,
     temporal_ensemble: bool = False,
     num_denoise_steps: int | None = None,
@@ -260,6 +284,8 @@ def evaluate(
         task: ManiSkill3 task id.
         episodes: evaluation episodes (seeds :func:`eval_seeds`).
         seed_offset: first evaluation seed is ``EVAL_SEED_BASE + seed_offset``.
+        demo_seeds: a demonstration buffer: run its first ``episodes`` demonstrations'
+            seeds (:func:`demonstration_seeds`, their initial states) instead of evaluation seeds.
         execute_steps: actions executed per chunk (``None``: the whole chunk).
         temporal_ensemble: replan every step with ACT's temporal ensemble.
         num_denoise_steps: decoding steps ``N`` (``None``: the policy's own; a
@@ -289,8 +315,10 @@ def evaluate(
         >>> result = evaluate("runs/pick/checkpoint", "PickCube-v1", episodes=50, execute_steps=5)
         >>> result.to_dict()["eval/success_once"], result.success_once_ci_low, result.decode_ms_p95
     """
-    seeds = eval_seeds(episodes, seed_offset)
     EnvConfig(task=task)  # an unknown task fails before the model loads
+    if demo_seeds is not None and seed_offset:
+        raise ValueError(f"seed_offset={seed_offset} applies to evaluation seeds; demo_seeds runs the demonstrations' own.")
+    seeds = eval_seeds(episodes, seed_offset) if demo_seeds is None else demonstration_seeds(demo_seeds, episodes, task)
     actor = load_actor(model, device)
     cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
@@ -360,6 +388,7 @@ def evaluate(
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
         action_readout=(action_readout or saved_readout) if mmada is not None else None,
         checkpoint=str(model) if isinstance(model, (str, Path)) else None,
+        demo_seeds=None if demo_seeds is None else str(demo_seeds),
     )  # fmt: skip
     if out_dir is not None:
         metrics.files = _write_outputs(Path(out_dir), metrics, frames if video else None,
@@ -371,7 +400,7 @@ def evaluate(
 def _write_outputs(out: Path, metrics: EvalResult, videos, goal) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
     payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint,
-               "action_readout": metrics.action_readout, "seeds": metrics.seeds,
+               "action_readout": metrics.action_readout, "demo_seeds": metrics.demo_seeds, "seeds": metrics.seeds,
                "per_episode": [r._asdict() for r in metrics.per_episode]}
     files = [out / "eval.json", out / "eval.md"]
     files[0].write_text(json.dumps(payload, indent=2))
@@ -440,6 +469,10 @@ def add_parser(sub) -> None:
     p.add_argument("--task", required=True, help="ManiSkill3 task id, e.g. PickCube-v1.")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes (default: %(default)s).")
     p.add_argument("--seed-offset", type=int, default=0, help=f"first env seed is {EVAL_SEED_BASE} + this (default: %(default)s).")
+    p.add_argument("--demo-seeds", default=None, metavar="BUFFER",
+                   help="run the first EPISODES demonstrations' seeds of this buffer (their initial states, which a "
+                   "policy trained on them has seen) instead of the evaluation seeds: memorisation against "
+                   "generalisation (default: evaluation seeds).")
     p.add_argument("--execute-steps", type=int, default=None, help="actions executed per chunk before replanning, 1..K (default: K).")
     p.add_argument("--temporal-ensemble", action="store_true", help="replan every step and average overlapping chunks (ACT).")
     p.add_argument("--num-denoise-steps", type=int, default=None, help="decoding steps N per chunk: MMaDA's parallel refinement steps, "
@@ -473,7 +506,8 @@ def _run_eval(args: argparse.Namespace) -> int:
     try:
         model_dir = resolve_model_dir(args.checkpoint)
         result = evaluate(
-            model_dir, args.task, args.episodes, seed_offset=args.seed_offset, execute_steps=args.execute_steps,
+            model_dir, args.task, args.episodes, seed_offset=args.seed_offset, demo_seeds=args.demo_seeds,
+            execute_steps=args.execute_steps,
             temporal_ensemble=args.temporal_ensemble, num_denoise_steps=args.num_denoise_steps,
             sample_temperature=args.sample_temperature, action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
             out_dir=args.out or Path(args.checkpoint) / "eval", video=args.video, goal_grid=args.goal_grid,

@@ -8,7 +8,8 @@ import torch
 
 from mmada_rl.cli import main
 from mmada_rl.envs.tasks import UnknownTaskError, task_spec
-from mmada_rl.evaluation import EVAL_SEED_BASE, eval_seeds, evaluate, resolve_model_dir, wilson_interval
+from mmada_rl.evaluation import (EVAL_SEED_BASE, demonstration_seeds, eval_seeds, evaluate, resolve_model_dir,
+                                 wilson_interval)
 from test_actor import build_tiny_model  # the tiny policy of the actor tests
 from script_loader import load_script
 
@@ -61,6 +62,27 @@ def test_evaluation_seeds_are_disjoint_from_training_seeds():
     assert eval_seeds(3, seed_offset=5) == [EVAL_SEED_BASE + 5, EVAL_SEED_BASE + 6, EVAL_SEED_BASE + 7]
     with pytest.raises(ValueError, match="seed_offset must be >= 0"):
         eval_seeds(3, seed_offset=-1)
+
+
+def test_demonstration_seeds_rerun_the_initial_states_of_a_buffer(model_dir, pick_demos, tmp_path):
+    from mmada_rl.data.metadata import BufferMetadata
+
+    recorded = BufferMetadata.load(pick_demos).seeds
+    assert demonstration_seeds(pick_demos, 2, "PickCube-v1") == recorded[:2] and len(recorded) == 2
+    result = evaluate(model_dir, "PickCube-v1", 1, demo_seeds=pick_demos, max_episode_steps=3, num_denoise_steps=1,
+                      out_dir=tmp_path, progress=False)
+    assert result.seeds == recorded[:1] and [r.seed for r in result.per_episode] == recorded[:1]
+    assert result.demo_seeds == str(pick_demos) and f"initial states ({pick_demos})" in result.table()
+    saved = json.loads((tmp_path / "eval.json").read_text())
+    assert saved["demo_seeds"] == str(pick_demos) and saved["seeds"] == recorded[:1]
+    with pytest.raises(ValueError, match="holds 2 demonstrations; ask for at most that many episodes"):
+        demonstration_seeds(pick_demos, 3)
+    with pytest.raises(ValueError, match="holds PickCube-v1 demonstrations, not PushCube-v1"):
+        evaluate(model_dir, "PushCube-v1", 1, demo_seeds=pick_demos)
+    with pytest.raises(ValueError, match="seed_offset=4 applies to evaluation seeds"):
+        evaluate(model_dir, "PickCube-v1", 1, seed_offset=4, demo_seeds=pick_demos)
+    with pytest.raises(FileNotFoundError, match="is not an mmada_rl buffer"):
+        demonstration_seeds(tmp_path / "nope", 1)
 
 
 def test_model_dir_is_found_directly_or_under_model(model_dir, tmp_path):
@@ -167,7 +189,7 @@ def test_mean_readout_is_switched_for_one_evaluation(model_dir, tmp_path):
 def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
     done = run_cli("eval", "--help", timeout=120)
     assert done.returncode == 0 and "--execute-steps" in done.stdout and "--temporal-ensemble" in done.stdout
-    assert "--action-readout {token,mean}" in done.stdout
+    assert "--action-readout {token,mean}" in done.stdout and "--demo-seeds BUFFER" in done.stdout
     assert main(["eval", "--checkpoint", str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("mmada-rl eval: error: no MMaDA policy at") and "\n" not in err
