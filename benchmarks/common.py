@@ -120,24 +120,31 @@ def probe_parser(description: str, name: str, task: str):
 
     parser.add_argument("--action-readout", choices=ACTION_READOUTS, default=None,
                         help="MMaDA-VLA only, as mmada-rl eval's option (default: the policy's own)")
+    parser.add_argument("--demo-seeds", default=None, metavar="BUFFER",
+                        help="run this buffer's demonstrations' seeds (their initial states) instead of the evaluation "
+                        "seeds, as mmada-rl eval's option")
     parser.add_argument("--name", default=name)
     parser.add_argument("--out", type=Path, default=RESULTS)
     return parser
 
 
 def run_probe(args, task: str, rollout, show=lambda episode: episode) -> tuple[list[dict], object]:
-    """``rollout(penv, seed, max_decisions) -> dict`` on each evaluation seed; returns the episodes and the
-    policy env (its env closed). ``show`` picks what is printed per episode."""
+    """``rollout(penv, seed, max_decisions) -> dict`` on each evaluation seed (or each of ``--demo-seeds``);
+    returns the episodes and the policy env (its env closed). ``show`` picks what is printed per episode."""
     import torch
 
-    from mmada_rl.evaluation import eval_seeds
+    from mmada_rl.evaluation import demonstration_seeds, eval_seeds
 
     if args.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
+    try:
+        seeds = eval_seeds(args.episodes) if args.demo_seeds is None else demonstration_seeds(args.demo_seeds, args.episodes, task)
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(str(err)) from None
     torch.set_num_threads(args.threads)
     penv, max_decisions = eval_policy_env(args.checkpoint, task, args.max_episode_steps, args.action_readout)
     episodes = []
-    for seed in eval_seeds(args.episodes):
+    for seed in seeds:
         episodes.append(rollout(penv, seed, max_decisions))
         print(show(episodes[-1]), flush=True)
     penv.env.close()

@@ -134,8 +134,10 @@ def main(argv: list[str] | None = None) -> int:
                "median_final_cm": median("final_cm"),
                "median_max_tilt_deg": statistics.median(e["max_tilt_deg"] for e in episodes)}
     payload = {"checkpoint": str(args.checkpoint), "task": TASK, "action_readout": args.action_readout,
-               "summary": summary, "episodes": episodes}
+               "demo_seeds": args.demo_seeds, "summary": summary, "episodes": episodes}
     readout = f" ({args.action_readout} read-out)" if args.action_readout else ""
+    seeds = (f"{args.episodes} evaluation seeds" if args.demo_seeds is None
+             else f"the initial states of the first {args.episodes} demonstrations in `{args.demo_seeds}`")
     fit_table = ""
     if args.demos is not None:
         payload["demo_fit"] = fit = demo_fit(penv.actor, args.demos)
@@ -155,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         [[summary["episodes"], summary["successes"], summary["grasped"], fmt(summary["median_closest_cm"]),
           fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"]), fmt(summary["median_max_tilt_deg"])]])
     markdown = (f"# How far the policy gets on PickCube-v1: `{args.checkpoint}`\n\n"
-                f"{args.episodes} evaluation seeds, greedy decoding{readout}; distances after the first grasp, "
+                f"{seeds}, greedy decoding{readout}; distances after the first grasp, "
                 f"medians over the episodes that grasped.\n\n{table}{fit_table}\n")
     write_results(args.name, payload, markdown, args.out)
     plot(episodes, args.out / f"{args.name}.png", str(args.checkpoint))

@@ -282,6 +282,15 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pic
     assert result["action_readout"] is None  # the policy's own
     with pytest.raises(ValueError, match="codes have no mean"):  # the toy policy's actions are VQ codes
         bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "1", "--action-readout", "mean"])
+    # the same probe on the demonstrations' own initial states
+    assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "1", "--max-episode-steps", "5",
+                       "--out", str(tmp_path), "--demo-seeds", str(pick_demos), "--name", "on_demos"]) == 0
+    on_demos = json.loads((tmp_path / "on_demos.json").read_text())
+    assert [e["seed"] for e in on_demos["episodes"]] == demonstration_seeds(pick_demos, 1)
+    assert on_demos["demo_seeds"] == str(pick_demos) and "initial states of the first 1 demonstrations" in (
+        tmp_path / "on_demos.md").read_text()
+    with pytest.raises(SystemExit, match="holds 2 demonstrations"):
+        bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "3", "--demo-seeds", str(pick_demos)])
 
 
 def test_decode_cache_benchmark_times_the_three_variants(toy_pretrain_run, tmp_path):
