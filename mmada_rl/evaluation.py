@@ -51,9 +51,8 @@ from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
-__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "eval_env_config", "eval_seeds", "evaluate",
-           "load_actor",
-           "resolve_model_dir", "wilson_interval"]
+__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "eval_env_config",
+           "eval_seeds", "evaluate", "load_actor", "resolve_model_dir", "wilson_interval"]
 
 #: First evaluation seed; training and demonstration seeds count up from 0.
 EVAL_SEED_BASE = 1_000_000
