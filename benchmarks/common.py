@@ -133,12 +133,12 @@ def run_probe(args, task: str, rollout, show=lambda episode: episode) -> tuple[l
     returns the episodes and the policy env (its env closed). ``show`` picks what is printed per episode."""
     import torch
 
-    from mmada_rl.evaluation import demonstration_seeds, eval_seeds
+    from mmada_rl.evaluation import episode_seeds
 
     if args.episodes < 1:
         raise SystemExit("--episodes must be >= 1")
     try:
-        seeds = eval_seeds(args.episodes) if args.demo_seeds is None else demonstration_seeds(args.demo_seeds, args.episodes, task)
+        seeds = episode_seeds(args.episodes, demo_seeds=args.demo_seeds, task=task)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(str(err)) from None
     torch.set_num_threads(args.threads)

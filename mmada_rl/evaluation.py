@@ -51,8 +51,8 @@ from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
-__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "eval_env_config",
-           "eval_seeds", "evaluate", "load_actor", "resolve_model_dir", "wilson_interval"]
+__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "episode_seeds",
+           "eval_env_config", "eval_seeds", "evaluate", "load_actor", "resolve_model_dir", "wilson_interval"]
 
 #: First evaluation seed; training and demonstration seeds count up from 0.
 EVAL_SEED_BASE = 1_000_000
@@ -81,6 +81,17 @@ def demonstration_seeds(buffer_dir: str | Path, episodes: int, task: str | None 
         raise ValueError(f"{buffer_dir} holds {len(meta.seeds)} demonstrations; ask for at most that many episodes "
                          f"(got {episodes}).")
     return [int(s) for s in meta.seeds[:episodes]]
+
+
+def episode_seeds(episodes: int, seed_offset: int = 0, demo_seeds: str | Path | None = None,
+                  task: str | None = None) -> list[int]:
+    """The env seeds an evaluation runs: :func:`eval_seeds`, or with ``demo_seeds`` (a buffer)
+    :func:`demonstration_seeds` of ``task``."""
+    if demo_seeds is None:
+        return eval_seeds(episodes, seed_offset)
+    if seed_offset:
+        raise ValueError(f"seed_offset={seed_offset} applies to evaluation seeds; demo_seeds runs the demonstrations' own.")
+    return demonstration_seeds(demo_seeds, episodes, task)
 
 
 class Interval(NamedTuple):
@@ -315,9 +326,7 @@ def evaluate(
         >>> result.to_dict()["eval/success_once"], result.success_once_ci_low, result.decode_ms_p95
     """
     EnvConfig(task=task)  # an unknown task fails before the model loads
-    if demo_seeds is not None and seed_offset:
-        raise ValueError(f"seed_offset={seed_offset} applies to evaluation seeds; demo_seeds runs the demonstrations' own.")
-    seeds = eval_seeds(episodes, seed_offset) if demo_seeds is None else demonstration_seeds(demo_seeds, episodes, task)
+    seeds = episode_seeds(episodes, seed_offset, demo_seeds, task)
     actor = load_actor(model, device)
     cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
