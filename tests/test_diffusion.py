@@ -24,7 +24,7 @@ from mmada_rl.diffusion.schedules import CosineNoiseSchedule, UniformNoiseSchedu
 from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import gaussian_bin_targets
-from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+from mmada_rl.tokenizers.layout import SEGMENTS, LayoutConfig, SequenceLayout
 from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
 
 K, D_TOK, TEXT, IMG = 3, 2, 4, 4
@@ -143,6 +143,42 @@ def test_cross_attention_to_visual():
         net(ids, torch.ones(2))
     module = make_denoiser_module(net)
     assert len(module.in_keys) == 3
+
+
+def test_proprio_value_embedding_reads_state_bins_as_ordered_values():
+    vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16,
+                                               proprio_codebook_size=64))
+    layout = SequenceLayout(LayoutConfig(TEXT, IMG, 4, K, D_TOK, proprio_tokens=3), vocab)
+    g = torch.Generator().manual_seed(0)
+    ids = layout.assemble(torch.randint(0, 20, (2, TEXT), generator=g), torch.randint(0, 32, (2, IMG), generator=g),
+                          torch.randint(0, 32, (2, 4), generator=g), torch.randint(0, 16, (2, K, D_TOK), generator=g),
+                          proprio_ids=torch.randint(0, 64, (2, 3), generator=g))
+    at_proprio = layout.segment_ids == SEGMENTS.index("proprio")
+    plain, valued = tiny(layout).eval(), tiny(layout, proprio_value_embedding=True).eval()
+    missing, unexpected = valued.load_state_dict(plain.state_dict(), strict=False)  # the same weights elsewhere
+    assert not unexpected and missing and all(k.startswith("proprio_value_embedding.") for k in missing)
+    # only the proprio positions change, and by an embedding of the bin's value
+    delta = valued._embed(ids) - plain._embed(ids)
+    assert bool((delta[:, ~at_proprio] == 0).all()) and bool((delta[:, at_proprio].norm(dim=-1) > 0).all())
+    # the further apart two bins, the further apart their value embeddings (at initialisation)
+    value = valued.proprio_value_embedding(torch.arange(64) / 63)  # (64, D)
+    dist = (value - value[:1]).norm(dim=-1)
+    assert bool((dist[[1, 4, 16, 63]].diff() > 0).all())
+    # a masked proprio token carries no value
+    masked = ids.clone()
+    masked[:, at_proprio] = vocab.mask_id
+    assert bool(((valued._embed(masked) - plain._embed(masked)) == 0).all())
+    # the condition cache and the full pass agree with the value embedding too
+    net = tiny(layout, proprio_value_embedding=True, attention="block_causal").eval()
+    tgt = layout.target_positions
+    noisy = ids.clone()
+    noisy[:, tgt] = vocab.mask_id
+    full = net(noisy, torch.ones(2))[:, tgt]
+    cached = net(noisy, torch.ones(2), cache=net.cache_condition(ids))
+    finite = torch.isfinite(full)
+    assert torch.allclose(cached[finite], full[finite], atol=1e-5)
+    with pytest.raises(ValueError, match="needs proprio tokens"):
+        tiny(make_layout(), proprio_value_embedding=True)
 
 
 def test_denoiser_config_validation_and_presets():

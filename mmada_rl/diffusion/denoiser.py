@@ -1,7 +1,8 @@
 """The masked-diffusion denoiser ``D_θ(x̃, ρ)`` over the unified sequence.
 
 A pre-norm transformer: token + learned position + segment (modality role)
-embeddings, plus an embedding of the noise level added to every position (to
+embeddings (and, as an option, an embedding of each proprioception bin's value,
+so the state's tokens are read as ordered numbers), plus an embedding of the noise level added to every position (to
 the targets only under block-causal attention); self-attention bidirectional or
 block-causal (per the layout); an optional
 cross-attention sublayer per block to visual features ``[B, N, d_vis]`` — given
@@ -27,7 +28,7 @@ from torch import nn
 
 from mmada_rl.diffusion.keys import LOGITS_KEY, VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.pretrained import load_pretrained_text_embeddings
-from mmada_rl.diffusion.transformer import NoiseLevelEmbedding, TransformerBlock
+from mmada_rl.diffusion.transformer import ScalarEmbedding, TransformerBlock
 from mmada_rl.diffusion.visual import ConvPatchEncoder
 from mmada_rl.keys import NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.tokenizers.layout import SEGMENTS, SequenceLayout
@@ -70,6 +71,12 @@ class DenoiserConfig:
             is then the uint8 observation image ``[B, 3, H, W]``, and its CNN
             features (one per cell of the last feature map) are what the
             sequence attends to. ``None``: ``visual`` holds the features already.
+        proprio_value_embedding: add to each proprioception token a sinusoidal
+            embedding of its bin's value (bin index over the number of bins, in
+            ``[0, 1]``), whose features lie further apart the further apart
+            the values are, so differences of state values are easy to read. Without it a state
+            token is an unordered learned embedding shared by every dimension.
+            Needs proprio tokens in the layout whose codes are ordered bins.
         tie_embeddings: share the output head with the token embeddings.
         pretrained_path: local HuggingFace checkpoint whose input embeddings
             initialise the text rows (needs ``transformers``; never downloads).
@@ -87,6 +94,7 @@ class DenoiserConfig:
     cross_attention_to_visual: bool = False
     visual_dim: int | None = None
     visual_encoder_channels: list[int] | None = None
+    proprio_value_embedding: bool = False
     tie_embeddings: bool = True
     pretrained_path: str | None = None
 
@@ -185,7 +193,12 @@ class MaskedDiffusionDenoiser(nn.Module):
         self.token_embedding = nn.Embedding(vocab_size, dim)
         self.position_embedding = nn.Parameter(torch.zeros(length, dim))
         self.segment_embedding = nn.Embedding(len(SEGMENTS), dim)
-        self.noise_embedding = NoiseLevelEmbedding(dim)
+        self.noise_embedding = ScalarEmbedding(dim)
+        self.proprio_value_embedding = None
+        if config.proprio_value_embedding:
+            if not layout.config.proprio_tokens:
+                raise ValueError("proprio_value_embedding=True needs proprio tokens in the layout (proprio_tokens > 0).")
+            self.proprio_value_embedding = ScalarEmbedding(dim, scale=10.0)
         self.visual_proj = self.visual_encoder = None
         if config.encodes_images:
             self.visual_encoder = ConvPatchEncoder(config.visual_encoder_channels)
@@ -202,6 +215,7 @@ class MaskedDiffusionDenoiser(nn.Module):
 
         low, high = layout.logit_bounds(restrict_condition=True)
         self.register_buffer("segment_ids", layout.segment_ids.clone(), persistent=False)  # (L,)
+        self.register_buffer("all_positions", torch.arange(layout.length), persistent=False)  # (L,)
         self.register_buffer("logit_low", low, persistent=False)  # (L,)
         self.register_buffer("logit_high", high, persistent=False)  # (L,)
         mask = layout.attention_mask(config.attention)
@@ -264,13 +278,30 @@ class MaskedDiffusionDenoiser(nn.Module):
         return self.noise_embedding(noise_level)
 
     def _embed(self, ids: torch.Tensor, positions: torch.Tensor | None = None) -> torch.Tensor:
-        """Token + position + segment embeddings of sequences ``ids [B, L]``: ``[B, L, D]``, or
-        ``[B, P, D]`` at ``positions [P]``."""
+        """Token + position + segment (+ proprio value) embeddings of sequences ``ids [B, L]``:
+        ``[B, L, D]``, or ``[B, P, D]`` at ``positions [P]``."""
         if positions is None:
-            return self.token_embedding(ids) + self.position_embedding + self.segment_embedding(self.segment_ids)
-        return self.token_embedding(ids[:, positions]) + self.position_embedding[positions] + self.segment_embedding(
+            positions = self.all_positions
+        x = self.token_embedding(ids[:, positions]) + self.position_embedding[positions] + self.segment_embedding(
             self.segment_ids[positions]
         )
+        if self.proprio_value_embedding is not None:
+            x = x + self._proprio_values(ids, positions)
+        return x
+
+    def _proprio_values(self, ids: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """Value embeddings ``[B, P, D]`` of the proprio bins at ``positions`` (zero elsewhere and at masked ones)."""
+        start, stop = self.layout.vocab.range_of("proprio")
+        at_proprio = self.segment_ids[positions] == SEGMENTS.index("proprio")  # (P,)
+        out = torch.zeros(ids.shape[0], len(positions), self.config.d_model, device=ids.device,
+                          dtype=self.position_embedding.dtype)
+        if not bool(at_proprio.any()):
+            return out
+        codes = ids[:, positions[at_proprio]] - start  # (B, P_p)
+        is_bin = (codes >= 0) & (codes < stop - start)  # a masked proprio token has no value
+        value = codes.clamp(0, stop - start - 1).float() / max(stop - start - 1, 1)
+        out[:, at_proprio] = self.proprio_value_embedding(value) * is_bin[..., None]
+        return out
 
     def _visual_context(self, visual: torch.Tensor | None, batch: int) -> torch.Tensor | None:
         """What the cross-attention reads, ``[B, N, D]`` (None without cross-attention)."""

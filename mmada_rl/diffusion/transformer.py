@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["Attention", "NoiseLevelEmbedding", "TransformerBlock"]
+__all__ = ["Attention", "ScalarEmbedding", "TransformerBlock"]
 
 
 class Attention(nn.Module):
@@ -97,16 +97,24 @@ class TransformerBlock(nn.Module):
         return (x, kv) if return_kv else x
 
 
-class NoiseLevelEmbedding(nn.Module):
-    """Sinusoidal embedding of the masking ratio ``ρ ∈ [0, 1]`` through an MLP: ``[B] -> [B, D]``."""
+class ScalarEmbedding(nn.Module):
+    """Sinusoidal embedding of a value in ``[0, 1]`` through an MLP: ``[*B] -> [*B, D]``.
 
-    def __init__(self, dim: int, frequencies: int = 64, max_period: float = 10_000.0) -> None:
+    The denoiser embeds the masking ratio ``ρ`` with it (``scale=1000``, as
+    diffusion models embed timesteps), and, as an option, the value of each
+    proprioception bin (``scale=10``: the highest frequency turns 10 radians over
+    ``[0, 1]``, so the features' distance grows with the values' distance across
+    the whole range instead of aliasing between neighbouring bins).
+    """
+
+    def __init__(self, dim: int, frequencies: int = 64, max_period: float = 10_000.0, scale: float = 1000.0) -> None:
         super().__init__()
+        self.scale = float(scale)
         half = frequencies // 2
         freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32) / half)
         self.register_buffer("freqs", freqs, persistent=False)
         self.mlp = nn.Sequential(nn.Linear(2 * half, dim), nn.SiLU(), nn.Linear(dim, dim))
 
-    def forward(self, noise_level: torch.Tensor) -> torch.Tensor:
-        angles = 1000.0 * noise_level.float()[:, None] * self.freqs[None]  # (B, F/2)
-        return self.mlp(torch.cat([angles.sin(), angles.cos()], dim=-1))  # (B, D)
+    def forward(self, value: torch.Tensor) -> torch.Tensor:
+        angles = self.scale * value.float()[..., None] * self.freqs  # (*B, F/2)
+        return self.mlp(torch.cat([angles.sin(), angles.cos()], dim=-1))  # (*B, D)

@@ -192,7 +192,13 @@ class MMaDAModel(nn.Module):
             ),
             self.vocab,
         )
-        self.denoiser = MaskedDiffusionDenoiser(config.denoiser_config(), self.layout)
+        denoiser_config = config.denoiser_config()
+        if denoiser_config.proprio_value_embedding and not (
+            self.proprio_tokenizer is not None and self.proprio_tokenizer.has_ordered_bins
+        ):
+            raise ValueError("denoiser_overrides.proprio_value_embedding=true needs proprio tokens that are ordered "
+                             "bins (use_proprio=true and a bin proprio tokenizer).")
+        self.denoiser = MaskedDiffusionDenoiser(denoiser_config, self.layout)
         if self.denoiser.config.cross_attention_to_visual and self.denoiser.visual_encoder is None:
             raise ValueError("the policy's cross-attention needs the denoiser to encode the observation image: "
                              "set denoiser_overrides.visual_encoder_channels (e.g. [32, 64, 128]).")
