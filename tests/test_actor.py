@@ -239,6 +239,25 @@ def test_policy_cross_attends_to_its_own_cnn_features_of_the_image(model, observ
         MMaDAConfig(denoiser="tiny", denoiser_overrides={"visual_encoder_channels": [8]})
 
 
+def test_policy_reads_proprio_bins_as_values(model, observations, tmp_path):
+    """``proprio_value_embedding``: the state's tokens also carry their bins' values; saved and reloaded."""
+    tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
+    config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3},
+                         denoiser_overrides={"proprio_value_embedding": True})
+    valued = MMaDAModel(config, tokenizers).eval()
+    assert valued.denoiser.proprio_value_embedding is not None
+    obs = observations[:2].clone()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        tokens = MMaDAActor(valued)(obs.clone())[ACTION_TOKENS_KEY]
+        reloaded = MMaDAModel.load(valued.save(tmp_path / "valued")).eval()
+        torch.testing.assert_close(MMaDAActor(reloaded)(obs.clone())[ACTION_TOKENS_KEY], tokens)
+    vq_proprio = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.action_tokenizer)
+    for tokens, use_proprio in ((tokenizers, False), (vq_proprio, True)):  # no proprio tokens; unordered codes
+        with pytest.raises(ValueError, match="proprio_value_embedding=true needs proprio tokens that are ordered bins"):
+            MMaDAModel(MMaDAConfig(denoiser="tiny", use_proprio=use_proprio,
+                                   denoiser_overrides={"proprio_value_embedding": True}), tokens)
+
+
 def test_set_keys_moves_our_fields_with_the_root(model):
     actor = MMaDAActor(model).set_keys(vla_action="policy")
     assert ("policy", "goal_image") in actor.out_keys and ("policy", "path") in actor.out_keys
