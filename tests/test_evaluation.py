@@ -293,6 +293,41 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pic
         bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "3", "--demo-seeds", str(pick_demos)])
 
 
+def test_goal_sensitivity_measures_how_the_first_action_follows_the_goal(toy_pretrain_run, pick_demos, state_demos,
+                                                                        tmp_path):
+    from mmada_rl.keys import ACTION_CHUNK_KEY, STATE_KEY
+
+    bench = load_benchmark("goal_sensitivity")
+    episodes = bench.grasped_observations(pick_demos, 2)
+    assert all(bool((e.get(STATE_KEY)[:, bench.IS_GRASPED] > 0.5).all()) for e in episodes)
+
+    def controller(gain):  # a policy moving by gain * (goal - TCP), in metres: gain / 100 per cm of goal shift
+        def act(td):
+            state = td.get(STATE_KEY)
+            step = gain * (state[:, bench.GOAL_POSITION] - state[:, 19:22])
+            return td.set(ACTION_CHUNK_KEY, torch.cat([step, torch.zeros(len(td), 4)], -1)[:, None].expand(-1, 5, -1))
+        return act
+
+    follows = bench.sensitivity(controller(3.0), episodes, shift_cm=2.0)
+    blind = bench.sensitivity(controller(0.0), episodes, shift_cm=2.0)
+    assert follows["states"] == blind["states"] == sum(len(e) for e in episodes) > 0
+    for axis in bench.AXES:
+        assert follows["axes"][axis]["mean_per_cm"] == pytest.approx(0.03, abs=1e-4)
+        assert follows["axes"][axis]["positive"] == 1.0 and blind["axes"][axis]["zero"] == 1.0
+    # end to end on a real (tiny) policy: results files, one row per checkpoint
+    assert bench.main(["--checkpoint", str(toy_pretrain_run), "--demos", str(pick_demos), "--episodes", "1",
+                       "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "goal_sensitivity.json").read_text())
+    axes = result["results"][str(toy_pretrain_run)]["axes"]
+    assert set(axes) == {"x", "y", "z"} and all(0 <= a["positive"] <= 1 for a in axes.values())
+    assert f"`{toy_pretrain_run}`" in (tmp_path / "goal_sensitivity.md").read_text()
+    assert (tmp_path / "goal_sensitivity.png").stat().st_size > 0
+    with pytest.raises(SystemExit, match="RGB observations"):
+        bench.main(["--checkpoint", str(toy_pretrain_run), "--demos", str(state_demos), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="holds only 2 demonstrations"):
+        bench.main(["--checkpoint", str(toy_pretrain_run), "--demos", str(pick_demos), "--episodes", "3"])
+
+
 def test_decode_cache_benchmark_times_the_three_variants(toy_pretrain_run, tmp_path):
     bench = load_benchmark("decode_cache")
     assert bench.main(["--layout-from", str(toy_pretrain_run), "--preset", "tiny", "--batch", "2", "--steps", "1", "3",
