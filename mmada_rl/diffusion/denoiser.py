@@ -1,9 +1,10 @@
 """The masked-diffusion denoiser ``D_θ(x̃, ρ)`` over the unified sequence.
 
 A pre-norm transformer: token + learned position + segment (modality role)
-embeddings (and, as an option, an embedding of each proprioception bin's value,
-so the state's tokens are read as ordered numbers), plus an embedding of the noise level added to every position (to
-the targets only under block-causal attention); self-attention bidirectional or
+embeddings (and, as an option, an embedding of each proprioception bin's
+value, so the state's tokens are read as ordered numbers), plus an embedding
+of the noise level added to every position (to the targets only under
+block-causal attention); self-attention bidirectional or
 block-causal (per the layout); an optional
 cross-attention sublayer per block to visual features ``[B, N, d_vis]`` — given
 as such, or computed from the observation image by a CNN the denoiser owns and
@@ -74,8 +75,9 @@ class DenoiserConfig:
         proprio_value_embedding: add to each proprioception token a sinusoidal
             embedding of its bin's value (bin index over the number of bins, in
             ``[0, 1]``), whose features lie further apart the further apart
-            the values are, so differences of state values are easy to read. Without it a state
-            token is an unordered learned embedding shared by every dimension.
+            the values are, so differences of state values are easy to read.
+            Without it a state token is an unordered learned embedding shared
+            by every dimension.
             Needs proprio tokens in the layout whose codes are ordered bins.
         tie_embeddings: share the output head with the token embeddings.
         pretrained_path: local HuggingFace checkpoint whose input embeddings
