@@ -14,8 +14,9 @@ component on that axis per centimetre of goal shift, ``(a(+s) - a(-s)) / 2s``,
 in the environment's action units (``pd_ee_delta_pose``: 1 = the controller's
 largest step). A policy that carries the cube toward the goal answers with a
 positive sensitivity on every axis; ``positive`` is the fraction of states where
-it does. A policy that ignores the goal gets zeros. Several ``--checkpoint``
-are compared on the same states.
+it does and ``unmoved`` where the action did not change at all. A policy that
+ignores the goal gets zeros. Several ``--checkpoint`` are compared on the same
+states.
 
 Works for any policy ``mmada-rl eval`` loads that reads the state (MMaDA-VLA
 with proprio tokens, BC, Diffusion Policy), on demonstrations recorded with RGB
@@ -98,7 +99,7 @@ def sensitivity(actor, episodes: list, shift_cm: float, seed: int = 0) -> dict:
         r = torch.cat(responses[axis])
         out["axes"][axis] = {"mean_per_cm": round(float(r.mean()), 5), "median_per_cm": round(float(r.median()), 5),
                              "positive": round(float((r > 0).float().mean()), 3),
-                             "zero": round(float((r == 0).float().mean()), 3)}
+                             "unmoved": round(float((r == 0).float().mean()), 3)}
     return out
 
 
@@ -129,13 +130,14 @@ def main(argv: list[str] | None = None) -> int:
         results[checkpoint] = sensitivity(actor, episodes, args.shift_cm)
         print(checkpoint, results[checkpoint], flush=True)
     first = next(iter(results.values()))
-    rows = [[f"`{c}`"] + [f"{r['axes'][a]['mean_per_cm']:+.4f} ({r['axes'][a]['positive']:.0%})" for a in AXES]
-            for c, r in results.items()]
-    table = markdown_table(["policy"] + [f"{a}: per cm (positive)" for a in AXES], rows)
+    rows = [[f"`{c}`"] + [f"{r['axes'][a]['mean_per_cm']:+.4f} ({r['axes'][a]['positive']:.0%} / "
+                          f"{r['axes'][a]['unmoved']:.0%})" for a in AXES] for c, r in results.items()]
+    table = markdown_table(["policy"] + [f"{a}: per cm (positive / unmoved)" for a in AXES], rows)
     markdown = (f"# Does the policy read the goal? PickCube-v1\n\n{first['states']} grasped states of the first "
                 f"{args.episodes} demonstrations in `{args.demos}`; the goal in the state moved by ±{args.shift_cm:g} cm "
                 f"along each axis. Change of the first action's translation on that axis per cm of goal shift "
-                f"(mean over the states; in brackets, the fraction of states where it is positive).\n\n{table}\n")
+                f"(mean over the states; in brackets, the fractions of states where it is positive / where the "
+                f"action did not move at all).\n\n{table}\n")
     write_results(args.name, {"task": TASK, "demos": str(args.demos), "episodes": args.episodes, "results": results},
                   markdown, args.out)
     plot(results, args.out / f"{args.name}.png")

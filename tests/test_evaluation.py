@@ -313,7 +313,7 @@ def test_goal_sensitivity_measures_how_the_first_action_follows_the_goal(toy_pre
     assert follows["states"] == blind["states"] == sum(len(e) for e in episodes) > 0
     for axis in bench.AXES:
         assert follows["axes"][axis]["mean_per_cm"] == pytest.approx(0.03, abs=1e-4)
-        assert follows["axes"][axis]["positive"] == 1.0 and blind["axes"][axis]["zero"] == 1.0
+        assert follows["axes"][axis]["positive"] == 1.0 and blind["axes"][axis]["unmoved"] == 1.0
     # end to end on a real (tiny) policy: results files, one row per checkpoint
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--demos", str(pick_demos), "--episodes", "1",
                        "--out", str(tmp_path)]) == 0
