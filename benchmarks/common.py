@@ -89,11 +89,11 @@ def probed_episode(penv, seed: int, max_decisions: int, probe) -> tuple[list, bo
     return probes, success
 
 
-def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None, action_readout: str | None = None):
-    """The policy of ``checkpoint`` (MMaDA-VLA or baseline) in its evaluation env on ``task``:
-    ``(penv, max_decisions)``, as ``mmada-rl eval`` runs it (``action_readout``: as its ``--action-readout``)."""
-    from mmada_rl.evaluation import eval_env_config, load_actor
-    from mmada_rl.policy import MMaDAActor, make_policy_env
+def load_policy(checkpoint, action_readout: str | None = None):
+    """The actor of ``checkpoint`` (MMaDA-VLA or baseline) in eval mode; ``action_readout``: as
+    ``mmada-rl eval --action-readout`` (MMaDA-VLA only; None keeps the policy's own)."""
+    from mmada_rl.evaluation import load_actor
+    from mmada_rl.policy import MMaDAActor
 
     actor = load_actor(checkpoint)
     actor.eval()
@@ -101,6 +101,16 @@ def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None,
         if not isinstance(actor, MMaDAActor):
             raise SystemExit(f"--action-readout needs an MMaDA-VLA policy; {checkpoint} holds a {type(actor).__name__}.")
         actor.model.set_action_readout(action_readout)
+    return actor
+
+
+def eval_policy_env(checkpoint, task: str, max_episode_steps: int | None = None, action_readout: str | None = None):
+    """The policy of ``checkpoint`` (MMaDA-VLA or baseline) in its evaluation env on ``task``:
+    ``(penv, max_decisions)``, as ``mmada-rl eval`` runs it (``action_readout``: as its ``--action-readout``)."""
+    from mmada_rl.evaluation import eval_env_config
+    from mmada_rl.policy import make_policy_env
+
+    actor = load_policy(checkpoint, action_readout)
     cfg = eval_env_config(actor, task, max_episode_steps=max_episode_steps)
     penv = make_policy_env(cfg, actor)
     return penv, -(-cfg.episode_steps // penv.actor.execute_steps) + 1

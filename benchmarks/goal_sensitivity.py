@@ -34,7 +34,7 @@ import torch
 from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
+from common import RESULTS, load_policy, markdown_table, save_figure, write_results  # noqa: E402
 
 TASK = "PickCube-v1"
 #: PickCube-v1's proprioceptive state (RGB observations): qpos (9), qvel (9), is_grasped (1), TCP pose (7), goal (3).
@@ -112,6 +112,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=20, help="how many demonstrations (the first ones) to use")
     parser.add_argument("--shift-cm", type=float, default=2.0, help="how far the goal moves each way along an axis")
     parser.add_argument("--threads", type=int, default=1)
+    from mmada_rl.policy import ACTION_READOUTS
+
+    parser.add_argument("--action-readout", choices=ACTION_READOUTS, default=None,
+                        help="MMaDA-VLA only, as mmada-rl eval's option (default: each policy's own)")
     parser.add_argument("--name", default="goal_sensitivity")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
@@ -119,27 +123,24 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--episodes must be >= 1")
     if args.shift_cm <= 0:
         raise SystemExit(f"--shift-cm must be > 0, got {args.shift_cm}")
-    from mmada_rl.evaluation import load_actor
-
     torch.set_num_threads(args.threads)
     episodes = grasped_observations(args.demos, args.episodes)
     results = {}
     for checkpoint in args.checkpoint:
-        actor = load_actor(checkpoint)
-        actor.eval()
-        results[checkpoint] = sensitivity(actor, episodes, args.shift_cm)
+        results[checkpoint] = sensitivity(load_policy(checkpoint, args.action_readout), episodes, args.shift_cm)
         print(checkpoint, results[checkpoint], flush=True)
     first = next(iter(results.values()))
+    readout = f" ({args.action_readout} read-out)" if args.action_readout else ""
     rows = [[f"`{c}`"] + [f"{r['axes'][a]['mean_per_cm']:+.4f} ({r['axes'][a]['positive']:.0%} / "
                           f"{r['axes'][a]['unmoved']:.0%})" for a in AXES] for c, r in results.items()]
     table = markdown_table(["policy"] + [f"{a}: per cm (positive / unmoved)" for a in AXES], rows)
     markdown = (f"# Does the policy read the goal? PickCube-v1\n\n{first['states']} grasped states of the first "
                 f"{args.episodes} demonstrations in `{args.demos}`; the goal in the state moved by ±{args.shift_cm:g} cm "
-                f"along each axis. Change of the first action's translation on that axis per cm of goal shift "
+                f"along each axis{readout}. Change of the first action's translation on that axis per cm of goal shift "
                 f"(mean over the states; in brackets, the fractions of states where it is positive / where the "
                 f"action did not move at all).\n\n{table}\n")
-    write_results(args.name, {"task": TASK, "demos": str(args.demos), "episodes": args.episodes, "results": results},
-                  markdown, args.out)
+    write_results(args.name, {"task": TASK, "demos": str(args.demos), "episodes": args.episodes,
+                              "action_readout": args.action_readout, "results": results}, markdown, args.out)
     plot(results, args.out / f"{args.name}.png")
     print(markdown)
     return 0

@@ -316,8 +316,9 @@ def test_goal_sensitivity_measures_how_the_first_action_follows_the_goal(toy_pre
         assert follows["axes"][axis]["positive"] == 1.0 and blind["axes"][axis]["unmoved"] == 1.0
     # end to end on a real (tiny) policy: results files, one row per checkpoint
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--demos", str(pick_demos), "--episodes", "1",
-                       "--out", str(tmp_path)]) == 0
+                       "--action-readout", "token", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "goal_sensitivity.json").read_text())
+    assert result["action_readout"] == "token" and "(token read-out)" in (tmp_path / "goal_sensitivity.md").read_text()
     axes = result["results"][str(toy_pretrain_run)]["axes"]
     assert set(axes) == {"x", "y", "z"} and all(0 <= a["positive"] <= 1 for a in axes.values())
     assert f"`{toy_pretrain_run}`" in (tmp_path / "goal_sensitivity.md").read_text()
