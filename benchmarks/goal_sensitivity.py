@@ -69,14 +69,15 @@ def grasped_observations(demos: Path, episodes: int):
 
 
 def first_actions(actor, obs, seed: int) -> torch.Tensor:
-    """First action ``[B, A]`` of the greedy chunk for each observation (the same sampling seed every call)."""
+    """First action ``[B, A]`` of the greedy chunk for each observation (the same sampling seed every call);
+    the actor writes its outputs into ``obs``."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from mmada_rl.keys import ACTION_CHUNK_KEY
 
     torch.manual_seed(seed)  # a stochastic decoder (Diffusion Policy) sees the same noise for every shifted goal
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-        return actor(obs.clone()).get(ACTION_CHUNK_KEY)[:, 0]
+        return actor(obs).get(ACTION_CHUNK_KEY)[:, 0]
 
 
 def sensitivity(actor, episodes: list, shift_cm: float, seed: int = 0) -> dict:

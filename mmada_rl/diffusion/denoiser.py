@@ -77,8 +77,7 @@ class DenoiserConfig:
             ``[0, 1]``), whose features lie further apart the further apart
             the values are, so differences of state values are easy to read.
             Without it a state token is an unordered learned embedding shared
-            by every dimension.
-            Needs proprio tokens in the layout whose codes are ordered bins.
+            by every dimension. Needs proprio tokens whose codes are ordered bins.
         tie_embeddings: share the output head with the token embeddings.
         pretrained_path: local HuggingFace checkpoint whose input embeddings
             initialise the text rows (needs ``transformers``; never downloads).
@@ -217,7 +216,6 @@ class MaskedDiffusionDenoiser(nn.Module):
 
         low, high = layout.logit_bounds(restrict_condition=True)
         self.register_buffer("segment_ids", layout.segment_ids.clone(), persistent=False)  # (L,)
-        self.register_buffer("all_positions", torch.arange(layout.length), persistent=False)  # (L,)
         self.register_buffer("logit_low", low, persistent=False)  # (L,)
         self.register_buffer("logit_high", high, persistent=False)  # (L,)
         mask = layout.attention_mask(config.attention)
@@ -283,23 +281,23 @@ class MaskedDiffusionDenoiser(nn.Module):
         """Token + position + segment (+ proprio value) embeddings of sequences ``ids [B, L]``:
         ``[B, L, D]``, or ``[B, P, D]`` at ``positions [P]``."""
         if positions is None:
-            positions = self.all_positions
-        x = self.token_embedding(ids[:, positions]) + self.position_embedding[positions] + self.segment_embedding(
-            self.segment_ids[positions]
-        )
+            position, segments = self.position_embedding, self.segment_ids
+        else:
+            ids, position, segments = ids[:, positions], self.position_embedding[positions], self.segment_ids[positions]
+        x = self.token_embedding(ids) + position + self.segment_embedding(segments)
         if self.proprio_value_embedding is not None:
-            x = x + self._proprio_values(ids, positions)
+            x = x + self._proprio_values(ids, segments)
         return x
 
-    def _proprio_values(self, ids: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
-        """Value embeddings ``[B, P, D]`` of the proprio bins at ``positions`` (zero elsewhere and at masked ones)."""
+    def _proprio_values(self, ids: torch.Tensor, segments: torch.Tensor) -> torch.Tensor:
+        """Value embeddings ``[B, P, D]`` of the proprio bins among ``ids [B, P]`` whose segments are ``segments [P]``
+        (zero at other positions and at masked proprio tokens)."""
         start, stop = self.layout.vocab.range_of("proprio")
-        at_proprio = self.segment_ids[positions] == SEGMENTS.index("proprio")  # (P,)
-        out = torch.zeros(ids.shape[0], len(positions), self.config.d_model, device=ids.device,
-                          dtype=self.position_embedding.dtype)
+        at_proprio = segments == SEGMENTS.index("proprio")  # (P,)
+        out = torch.zeros(*ids.shape, self.config.d_model, device=ids.device, dtype=self.position_embedding.dtype)
         if not bool(at_proprio.any()):
             return out
-        codes = ids[:, positions[at_proprio]] - start  # (B, P_p)
+        codes = ids[:, at_proprio] - start  # (B, P_p)
         is_bin = (codes >= 0) & (codes < stop - start)  # a masked proprio token has no value
         value = codes.clamp(0, stop - start - 1).float() / max(stop - start - 1, 1)
         out[:, at_proprio] = self.proprio_value_embedding(value) * is_bin[..., None]
