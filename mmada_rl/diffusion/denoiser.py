@@ -286,22 +286,18 @@ class MaskedDiffusionDenoiser(nn.Module):
             ids, position, segments = ids[:, positions], self.position_embedding[positions], self.segment_ids[positions]
         x = self.token_embedding(ids) + position + self.segment_embedding(segments)
         if self.proprio_value_embedding is not None:
-            x = x + self._proprio_values(ids, segments)
+            at_proprio = segments == SEGMENTS.index("proprio")  # (P,); none among the targets alone
+            if bool(at_proprio.any()):
+                x[:, at_proprio] = x[:, at_proprio] + self._proprio_values(ids[:, at_proprio])
         return x
 
-    def _proprio_values(self, ids: torch.Tensor, segments: torch.Tensor) -> torch.Tensor:
-        """Value embeddings ``[B, P, D]`` of the proprio bins among ``ids [B, P]`` whose segments are ``segments [P]``
-        (zero at other positions and at masked proprio tokens)."""
+    def _proprio_values(self, ids: torch.Tensor) -> torch.Tensor:
+        """Value embeddings ``[B, P_p, D]`` of proprio-position ids ``[B, P_p]`` (zero at masked ones)."""
         start, stop = self.layout.vocab.range_of("proprio")
-        at_proprio = segments == SEGMENTS.index("proprio")  # (P,)
-        out = torch.zeros(*ids.shape, self.config.d_model, device=ids.device, dtype=self.position_embedding.dtype)
-        if not bool(at_proprio.any()):
-            return out
-        codes = ids[:, at_proprio] - start  # (B, P_p)
+        codes = ids - start
         is_bin = (codes >= 0) & (codes < stop - start)  # a masked proprio token has no value
         value = codes.clamp(0, stop - start - 1).float() / max(stop - start - 1, 1)
-        out[:, at_proprio] = self.proprio_value_embedding(value) * is_bin[..., None]
-        return out
+        return self.proprio_value_embedding(value) * is_bin[..., None]
 
     def _visual_context(self, visual: torch.Tensor | None, batch: int) -> torch.Tensor | None:
         """What the cross-attention reads, ``[B, N, D]`` (None without cross-attention)."""
