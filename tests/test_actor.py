@@ -21,6 +21,7 @@ from mmada_rl.keys import (
     GOAL_IMAGE_KEY,
     IMAGE_KEY,
     INSTRUCTION_KEY,
+    SEQUENCE_KEY,
     STATE_KEY,
 )
 from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss
@@ -237,6 +238,41 @@ def test_policy_cross_attends_to_its_own_cnn_features_of_the_image(model, observ
         MMaDAModel(MMaDAConfig(denoiser="tiny", denoiser_overrides={"cross_attention_to_visual": True}), tokenizers)
     with pytest.raises(ValueError, match="needs cross_attention_to_visual"):
         MMaDAConfig(denoiser="tiny", denoiser_overrides={"visual_encoder_channels": [8]})
+
+
+def test_policy_sees_the_image_only_through_its_cnn(model, observations, tmp_path):
+    """``observation_tokens=False``: no observation codes in the sequence; the CNN alone reads the image,
+    so the prompt no longer depends on it while the actions still do; saved and reloaded."""
+    tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
+    overrides = {"cross_attention_to_visual": True, "visual_encoder_channels": [8, 16, 32]}
+    config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3}, observation_tokens=False,
+                         denoiser_overrides=overrides)
+    torch.manual_seed(0)
+    cnn_only = MMaDAModel(config, tokenizers).eval()
+    assert cnn_only.layout.config.obs_tokens == 0
+    assert cnn_only.layout.length == model.layout.length - model.image_tokenizer.tokens_per_image - 1  # codes + tag
+    obs = observations[:3].clone()
+    shifted = obs.clone()
+    shifted[IMAGE_KEY] = torch.roll(shifted[IMAGE_KEY], 8, dims=-1)
+    assert torch.equal(cnn_only.prompt(obs), cnn_only.prompt(shifted))
+    ids, level = cnn_only.prompt(obs), torch.ones(3)
+    logits = [cnn_only.denoiser(ids, level, visual=cnn_only.visual_input(o)) for o in (obs, shifted)]
+    assert not torch.allclose(logits[0], logits[1])
+    windows = obs.clone()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        tokens = MMaDAActor(cnn_only)(obs.clone())[ACTION_TOKENS_KEY]
+        reloaded = MMaDAModel.load(cnn_only.save(tmp_path / "cnn_only")).eval()
+        assert reloaded.layout.config.obs_tokens == 0
+        torch.testing.assert_close(MMaDAActor(reloaded)(obs.clone())[ACTION_TOKENS_KEY], tokens)
+    windows.set(ACTION_CHUNK_KEY, cnn_only.action_tokenizer.decode(tokens))
+    windows.set(GOAL_IMAGE_KEY, shifted[IMAGE_KEY])
+    windows.set(ACTION_IS_PAD_KEY, torch.zeros(3, CHUNK, dtype=torch.bool))
+    rows = cnn_only.loss_inputs(windows)
+    assert rows[SEQUENCE_KEY].shape == (3, cnn_only.layout.length)
+    losses = MaskedDiffusionLoss(cnn_only.denoiser)(rows)
+    assert torch.isfinite(losses["loss_goal"]) and torch.isfinite(losses["loss_action"])
+    with pytest.raises(ValueError, match="observation_tokens=false leaves the policy blind"):
+        MMaDAConfig(denoiser="tiny", observation_tokens=False)
 
 
 def test_policy_reads_proprio_bins_as_values(model, observations, tmp_path):

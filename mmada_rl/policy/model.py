@@ -69,6 +69,10 @@ class MMaDAConfig:
         chunk_size: actions per chunk ``K``.
         predict_goal: generate the goal image ``o_{t+K}`` together with the chunk.
         use_proprio: put the proprioceptive state into the sequence as tokens.
+        observation_tokens: put the observation image's codes into the sequence. ``False``:
+            the image reaches the denoiser only through its own CNN features, by cross-attention
+            (needs ``denoiser_overrides.visual_encoder_channels``), the issue's "visual features
+            instead of image tokens"; the image tokenizer then serves the goal image alone.
         proprio_drop_dims: state dimensions left out of the sequence (their tokens
             are dropped; the proprio tokenizer still covers every dimension, so a
             tokenizer directory serves runs with and without them). E.g.
@@ -90,6 +94,7 @@ class MMaDAConfig:
     chunk_size: int = 5
     predict_goal: bool = True
     use_proprio: bool = True
+    observation_tokens: bool = True
     proprio_drop_dims: list[int] = field(default_factory=list)
     interleave: bool = False
     denoiser: str | dict = "small"
@@ -105,7 +110,11 @@ class MMaDAConfig:
         if self.proprio_drop_dims and not self.use_proprio:
             raise ValueError(f"proprio_drop_dims={self.proprio_drop_dims} needs use_proprio=True.")
         _check_action_readout(self.action_readout)
-        self.denoiser_config()  # validates
+        denoiser = self.denoiser_config()  # validates
+        if not self.observation_tokens and denoiser.visual_encoder_channels is None:
+            raise ValueError("observation_tokens=false leaves the policy blind unless the denoiser encodes the "
+                             "image itself: set denoiser_overrides.cross_attention_to_visual=true and "
+                             "visual_encoder_channels (e.g. [32, 64, 128]).")
         self.sampler_config()
 
     def denoiser_config(self) -> DenoiserConfig:
@@ -182,7 +191,7 @@ class MMaDAModel(nn.Module):
         self.layout = SequenceLayout(
             LayoutConfig(
                 text_tokens=self.text_tokenizer.max_len,
-                obs_tokens=self.image_tokenizer.tokens_per_image,
+                obs_tokens=self.image_tokenizer.tokens_per_image if config.observation_tokens else 0,
                 goal_tokens=self.image_tokenizer.tokens_per_image if config.predict_goal else 0,
                 chunk_size=config.chunk_size,
                 tokens_per_action=self.action_tokenizer.tokens_per_action,
@@ -251,9 +260,10 @@ class MMaDAModel(nn.Module):
                 f"{self.image_size}x{self.image_size}; use env image_size={self.image_size}."
             )
         text = self.text_tokenizer.encode(instructions_of(td)).ids.to(image.device)  # (B, L_t)
+        obs_tokens = self.layout.config.obs_tokens  # 0: the image reaches the denoiser through its CNN alone
         out = {
             "text_ids": text.reshape(-1, text.shape[-1]),
-            "obs_ids": self.image_tokenizer.encode(image).reshape(-1, self.layout.config.obs_tokens),
+            "obs_ids": self.image_tokenizer.encode(image).reshape(-1, obs_tokens) if obs_tokens else None,
         }
         if self.proprio_tokenizer is not None:
             # a multi-task model's tokenizer spans the largest state; smaller task states are zero-padded

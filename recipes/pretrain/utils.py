@@ -79,6 +79,7 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         chunk_size=int(m.chunk_size),
         predict_goal=bool(m.predict_goal),
         use_proprio=bool(m.use_proprio),
+        observation_tokens=bool(m.observation_tokens),
         proprio_drop_dims=[int(d) for d in m.proprio_drop_dims],
         interleave=bool(m.interleave),
         denoiser=m.denoiser if isinstance(m.denoiser, str) else OmegaConf.to_container(m.denoiser),
