@@ -71,8 +71,8 @@ class MMaDAConfig:
         use_proprio: put the proprioceptive state into the sequence as tokens.
         observation_tokens: put the observation image's codes into the sequence. ``False``:
             the image reaches the denoiser only through its own CNN features, by cross-attention
-            (needs ``denoiser_overrides.visual_encoder_channels``), the issue's "visual features
-            instead of image tokens"; the image tokenizer then serves the goal image alone.
+            (needs ``denoiser_overrides.visual_encoder_channels``): visual features instead of
+            image tokens in the sequence; the image tokenizer then serves the goal image alone.
         proprio_drop_dims: state dimensions left out of the sequence (their tokens
             are dropped; the proprio tokenizer still covers every dimension, so a
             tokenizer directory serves runs with and without them). E.g.
