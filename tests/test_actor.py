@@ -294,6 +294,23 @@ def test_policy_reads_proprio_bins_as_values(model, observations, tmp_path):
                                    denoiser_overrides={"proprio_value_embedding": True}), tokens)
 
 
+def test_policy_embeds_action_bins_by_value(model, observations, tmp_path):
+    """``action_value_embedding``: the action bins' embeddings carry their values; saved and reloaded; bins only."""
+    valued = build_tiny_model(observations[IMAGE_KEY], observations[STATE_KEY], torch.rand(64, 7) * 2 - 1,
+                              observations[INSTRUCTION_KEY][0], action_tokens="bins",
+                              denoiser_overrides={"action_value_embedding": True}).eval()
+    assert valued.denoiser.action_value_embedding is not None
+    obs = observations[:2].clone()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        tokens = MMaDAActor(valued)(obs.clone())[ACTION_TOKENS_KEY]
+        reloaded = MMaDAModel.load(valued.save(tmp_path / "valued")).eval()
+        assert reloaded.denoiser.action_value_embedding is not None
+        torch.testing.assert_close(MMaDAActor(reloaded)(obs.clone())[ACTION_TOKENS_KEY], tokens)
+    tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
+    with pytest.raises(ValueError, match="action_value_embedding=true needs action tokens that are ordered bins"):
+        MMaDAModel(MMaDAConfig(denoiser="tiny", denoiser_overrides={"action_value_embedding": True}), tokenizers)
+
+
 def test_set_keys_moves_our_fields_with_the_root(model):
     actor = MMaDAActor(model).set_keys(vla_action="policy")
     assert ("policy", "goal_image") in actor.out_keys and ("policy", "path") in actor.out_keys

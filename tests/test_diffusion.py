@@ -181,6 +181,42 @@ def test_proprio_value_embedding_reads_state_bins_as_ordered_values():
         tiny(make_layout(), proprio_value_embedding=True)
 
 
+def test_action_value_embedding_makes_neighbouring_bins_alike():
+    layout = make_layout()
+    ids = make_batch(layout, batch=2)
+    start, stop = layout.vocab.range_of("action")
+    at_action = layout.segment_ids == SEGMENTS.index("action")
+    plain, valued = tiny(layout).eval(), tiny(layout, action_value_embedding=True).eval()
+    missing, unexpected = valued.load_state_dict(plain.state_dict(), strict=False)  # the same weights elsewhere
+    assert not unexpected and missing and all(k.startswith("action_value_embedding.") for k in missing)
+    # only the action positions change, by the embedding of the bin's value
+    delta = valued._embed(ids) - plain._embed(ids)
+    assert bool((delta[:, ~at_action] == 0).all()) and bool((delta[:, at_action].norm(dim=-1) > 0).all())
+    # the action rows of the tied head carry it too: only the action ids' logits change
+    hidden = torch.randn(3, plain.config.d_model)
+    positions = at_action.nonzero().squeeze(-1)[:3]
+    diff = (valued.project(hidden, positions) - plain.project(hidden, positions)).nan_to_num(0.0)
+    ids_changed = diff.abs().sum(0).nonzero().squeeze(-1)
+    assert ids_changed.numel() and bool(((ids_changed >= start) & (ids_changed < stop)).all())
+    # at initialisation a bin's embedding is nearer its neighbour's than a distant bin's
+    weight = valued._token_weight()[start:stop]  # (16, D)
+    dist = (weight - weight[:1]).norm(dim=-1)
+    assert dist[1] < dist[8] and dist[1] < dist[15]
+    # the value embedding learns from the loss through both uses
+    loss = valued(ids, torch.ones(2))[:, at_action].log_softmax(-1).nan_to_num(0.0).sum()
+    loss.backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in valued.action_value_embedding.parameters())
+    # the condition cache and the full pass agree with it
+    net = tiny(layout, action_value_embedding=True, attention="block_causal").eval()
+    tgt = layout.target_positions
+    noisy = ids.clone()
+    noisy[:, tgt[::2]] = layout.vocab.mask_id  # some action tokens visible, as in the middle of decoding
+    full = net(noisy, torch.ones(2))[:, tgt]
+    cached = net(noisy, torch.ones(2), cache=net.cache_condition(ids))
+    finite = torch.isfinite(full)
+    assert torch.allclose(cached[finite], full[finite], atol=1e-5)
+
+
 def test_denoiser_config_validation_and_presets():
     with pytest.raises(ValueError, match="num_heads=3"):
         DenoiserConfig(d_model=64, num_heads=3)

@@ -78,6 +78,15 @@ class DenoiserConfig:
             the values are, so differences of state values are easy to read.
             Without it a state token is an unordered learned embedding shared
             by every dimension. Needs proprio tokens whose codes are ordered bins.
+        action_value_embedding: give every action id a sinusoidal embedding of
+            its bin's value (bin index over the number of bins, in ``[0, 1]``)
+            through an MLP, added to its learned embedding — in the input and,
+            through the tied head, in the output. Neighbouring bins then start
+            with nearly the same embedding, so the logits over the bins are a
+            smooth function of the value learned from every example, instead of
+            256 unrelated classes each learned from its own few (what a
+            regression head shares for free). Needs action tokens whose codes
+            are ordered bins (the uniform-bin tokenizer).
         tie_embeddings: share the output head with the token embeddings.
         pretrained_path: local HuggingFace checkpoint whose input embeddings
             initialise the text rows (needs ``transformers``; never downloads).
@@ -96,6 +105,7 @@ class DenoiserConfig:
     visual_dim: int | None = None
     visual_encoder_channels: list[int] | None = None
     proprio_value_embedding: bool = False
+    action_value_embedding: bool = False
     tie_embeddings: bool = True
     pretrained_path: str | None = None
 
@@ -200,6 +210,13 @@ class MaskedDiffusionDenoiser(nn.Module):
             if not layout.config.proprio_tokens:
                 raise ValueError("proprio_value_embedding=True needs proprio tokens in the layout (proprio_tokens > 0).")
             self.proprio_value_embedding = ScalarEmbedding(dim, scale=10.0)
+        self.action_value_embedding = None
+        if config.action_value_embedding:
+            if not layout.vocab.has("action"):
+                raise ValueError("action_value_embedding=True needs action ids in the vocabulary.")
+            # Frequencies from ~1 to 200 radians over [0, 1]: the slow ones make neighbouring bins alike,
+            # the fast ones (a period of ~8 of 256 bins) still let a distribution peak within a few bins.
+            self.action_value_embedding = ScalarEmbedding(dim, scale=200.0, max_period=200.0)
         self.visual_proj = self.visual_encoder = None
         if config.encodes_images:
             self.visual_encoder = ConvPatchEncoder(config.visual_encoder_channels)
@@ -284,12 +301,22 @@ class MaskedDiffusionDenoiser(nn.Module):
             position, segments = self.position_embedding, self.segment_ids
         else:
             ids, position, segments = ids[:, positions], self.position_embedding[positions], self.segment_ids[positions]
-        x = self.token_embedding(ids) + position + self.segment_embedding(segments)
+        x = nn.functional.embedding(ids, self._token_weight()) + position + self.segment_embedding(segments)
         if self.proprio_value_embedding is not None:
             at_proprio = segments == SEGMENTS.index("proprio")  # (P,); none among the targets alone
             if bool(at_proprio.any()):
                 x[:, at_proprio] = x[:, at_proprio] + self._proprio_values(ids[:, at_proprio])
         return x
+
+    def _token_weight(self, weight: torch.Tensor | None = None) -> torch.Tensor:
+        """The id embeddings ``[V, D]`` (the token embeddings, or ``weight``), the action rows plus
+        their bins' value embeddings when ``action_value_embedding`` is on."""
+        weight = self.token_embedding.weight if weight is None else weight
+        if self.action_value_embedding is None:
+            return weight
+        start, stop = self.layout.vocab.range_of("action")
+        values = torch.arange(stop - start, device=weight.device, dtype=torch.float32) / max(stop - start - 1, 1)
+        return torch.cat([weight[:start], weight[start:stop] + self.action_value_embedding(values), weight[stop:]])
 
     def _proprio_values(self, ids: torch.Tensor) -> torch.Tensor:
         """Value embeddings ``[B, P_p, D]`` of proprio-position ids ``[B, P_p]`` (zero at masked ones)."""
@@ -365,7 +392,7 @@ class MaskedDiffusionDenoiser(nn.Module):
 
     def project(self, hidden: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
         """Restricted logits ``[..., V]`` of hidden states ``[..., D]`` at sequence ``positions [...]``."""
-        weight = self.token_embedding.weight if self.head is None else self.head.weight  # (V, D)
+        weight = self._token_weight(None if self.head is None else self.head.weight)  # (V, D)
         logits = hidden @ weight.t() + self.head_bias  # (..., V)
         ids = torch.arange(self.vocab_size, device=hidden.device)
         allowed = (ids >= self.logit_low[positions][..., None]) & (ids < self.logit_high[positions][..., None])

@@ -207,6 +207,10 @@ class MMaDAModel(nn.Module):
         ):
             raise ValueError("denoiser_overrides.proprio_value_embedding=true needs proprio tokens that are ordered "
                              "bins (use_proprio=true and a bin proprio tokenizer).")
+        if denoiser_config.action_value_embedding and not self.action_tokenizer.has_ordered_bins:
+            raise ValueError(f"denoiser_overrides.action_value_embedding=true needs action tokens that are ordered "
+                             f"bins (tokenizers.action_type=bins); this policy's "
+                             f"{type(self.action_tokenizer).__name__} codes have no order.")
         self.denoiser = MaskedDiffusionDenoiser(denoiser_config, self.layout)
         if self.denoiser.config.cross_attention_to_visual and self.denoiser.visual_encoder is None:
             raise ValueError("the policy's cross-attention needs the denoiser to encode the observation image: "
