@@ -329,6 +329,32 @@ def test_goal_sensitivity_measures_how_the_first_action_follows_the_goal(toy_pre
         bench.main(["--checkpoint", str(toy_pretrain_run), "--demos", str(pick_demos), "--episodes", "3"])
 
 
+def test_train_throughput_benchmark_times_each_configuration_on_the_same_windows(toy_pretrain_run, pick_demos,
+                                                                                  tmp_path):
+    bench = load_benchmark("train_throughput")
+    tokenizers = toy_pretrain_run / "tokenizers"
+    variants = [f'with codes={tokenizers}={{"denoiser": "tiny"}}',
+                f'cnn only={tokenizers}={{"denoiser": "tiny", "observation_tokens": false, "predict_goal": false}}']
+    assert bench.main(["--demos", str(pick_demos), *(a for v in variants for a in ("--variant", v)), "--bc",
+                       "--batch-size", "2", "--repeats", "2", "--warmup", "0", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "train_throughput.json").read_text())
+    first, second, bc = result["variants"]
+    assert [first["name"], second["name"], bc["name"]] == ["with codes", "cnn only", "BC baseline"]
+    # without the observation codes and the goal image the sequence is shorter by both
+    assert second["sequence_length"] < first["sequence_length"] and bc["sequence_length"] is None
+    assert first["fields"]["denoiser_overrides"]["visual_encoder_channels"] == [32, 64, 128]  # the base's CNN kept
+    for v in result["variants"]:
+        assert len(v["step_s"]) == 2 and all(t > 0 for t in v["step_s"]) and v["windows_per_s"] > 0
+    assert first["step_time_vs_first"] == 1.0
+    markdown = (tmp_path / "train_throughput.md").read_text()
+    assert "| cnn only |" in markdown and "| BC baseline |" in markdown and "Reproduce:" in markdown
+    assert (tmp_path / "train_throughput.png").stat().st_size > 0
+    with pytest.raises(SystemExit):  # no fitted tokenizers there
+        bench.main(["--demos", str(pick_demos), "--variant", f"x={tmp_path}={{}}", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):  # fields that are not a JSON object
+        bench.main(["--demos", str(pick_demos), "--variant", f"x={tokenizers}=[1]", "--out", str(tmp_path)])
+
+
 def test_decode_cache_benchmark_times_the_three_variants(toy_pretrain_run, tmp_path):
     bench = load_benchmark("decode_cache")
     assert bench.main(["--layout-from", str(toy_pretrain_run), "--preset", "tiny", "--batch", "2", "--steps", "1", "3",

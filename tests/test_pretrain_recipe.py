@@ -155,3 +155,20 @@ def test_random_shift_option_shifts_the_recipes_training_windows(pick_demos):
     for key in (IMAGE_KEY, GOAL_IMAGE_KEY):
         moved = [not torch.equal(a, b) for a, b in zip(shifted[key], plain[key])]
         assert sum(moved) >= len(moved) // 2  # 1 offset in 81 leaves a window in place
+
+
+def test_cpu_config_shortens_the_sequence_and_trains(pick_demos, tmp_path):
+    """``--config-name maniskill_cpu``: the goal image as 4x4 codes, the observation through the CNN alone,
+    no joint velocities, a denoiser of width 128; it composes, fits its tokenizers and trains."""
+    run_dir = tmp_path / "cpu"
+    proc = run_recipe("--config-name", "maniskill_cpu", f"run_dir={run_dir}", f"data.dir={pick_demos}",
+                      "data.collect_episodes=0", "optim.total_steps=2", "optim.warmup_steps=1", "eval.episodes=0",
+                      "tokenizers.image_steps=2", "tokenizers.action_steps=2", "replay_buffer.batch_size=4",
+                      "checkpoint.interval=2")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    image = json.loads((run_dir / "tokenizers" / "image" / "config.json").read_text())
+    assert image["config"]["grid_size"] == 4
+    saved = json.loads((latest_checkpoint(run_dir) / "model" / "model.json").read_text())["config"]
+    assert saved["observation_tokens"] is False and saved["proprio_drop_dims"] == list(range(9, 18))
+    assert saved["denoiser_overrides"]["d_model"] == 128
+    assert "sequence length 92;" in proc.stdout  # 214 with maniskill.yaml's layout (benchmarks/train_throughput.py)
