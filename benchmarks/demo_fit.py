@@ -11,6 +11,9 @@ in), masks the target tokens (goal image + action chunk) at each fixed ratio of
 tokens. It also decodes each window's chunk greedily with the model's sampler
 (the N steps the policy runs) and reports its mean absolute error against the
 demonstrated chunk, in the environment's action units, per action dimension.
+A BC or Diffusion Policy run (``recipes/baselines/imitation.py``) gets the
+same decoded error on the same windows (its own chunk prediction), so the
+policy's fit can be set beside the baseline's at equal updates.
 The same seed gives every run the same windows and the same masks, so two
 checkpoints are compared on identical inputs. Ratio 1.0 is what the first of
 the N decoding steps sees (every target masked).
@@ -40,10 +43,10 @@ from common import RESULTS, markdown_table, save_figure, write_results  # noqa: 
 
 from mmada_rl.data import DemoBuffer, make_window_buffer  # noqa: E402
 from mmada_rl.diffusion.schedules import UniformNoiseSchedule  # noqa: E402
-from mmada_rl.evaluation import resolve_model_dir  # noqa: E402
+from mmada_rl.evaluation import load_actor  # noqa: E402
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY  # noqa: E402
 from mmada_rl.objectives import MaskedDiffusionLoss  # noqa: E402
-from mmada_rl.policy import MMaDAModel  # noqa: E402
+from mmada_rl.policy import MMaDAActor, MMaDAModel  # noqa: E402
 
 
 def parse_run(text: str) -> tuple[Path, list[str]]:
@@ -72,14 +75,20 @@ def token_accuracy(model: MMaDAModel, demos: DemoBuffer, ratio: float, minibatch
 
 
 @torch.no_grad()
-def decoded_chunk_error(model: MMaDAModel, demos: DemoBuffer, minibatches: int, batch_size: int, seed: int) -> list[float]:
-    """Mean absolute error per action dimension of greedily decoded chunks against the demonstrated ones."""
+def decoded_chunk_error(policy, demos: DemoBuffer, minibatches: int, batch_size: int, seed: int) -> list[float]:
+    """Mean absolute error per action dimension of the chunks ``policy`` predicts against the demonstrated ones:
+    an :class:`MMaDAModel` decoded greedily, or a baseline chunk policy (BC, Diffusion Policy) as it acts."""
     torch.manual_seed(seed)
-    windows = make_window_buffer(demos, model.config.chunk_size, batch_size, seed=seed)
+    is_mmada = isinstance(policy, MMaDAModel)
+    chunk_size = policy.config.chunk_size if is_mmada else policy.chunk_size
+    windows = make_window_buffer(demos, chunk_size, batch_size, seed=seed)
     errors = []
     for _ in range(minibatches):
         w = windows.sample()
-        chunk = model.act(w, greedy=True, decode_goal=False).chunk  # (B, K, A)
+        if is_mmada:
+            chunk = policy.act(w, greedy=True, decode_goal=False).chunk  # (B, K, A)
+        else:  # the baseline writes its chunk where the window holds the demonstrated one: act on a copy
+            chunk = policy(w.clone()).get(ACTION_CHUNK_KEY)  # (B, K, A)
         real = ~w.get(ACTION_IS_PAD_KEY).bool()  # (B, K)
         errors.append((chunk - w.get(ACTION_CHUNK_KEY)).abs()[real])  # (M, A)
     return torch.cat(errors).mean(0).tolist()
@@ -88,7 +97,8 @@ def decoded_chunk_error(model: MMaDAModel, demos: DemoBuffer, minibatches: int, 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=parse_run, action="append", required=True, metavar="RUN=TASK[,TASK...]",
-                        help="a pretraining run (or checkpoint / model directory) and the tasks to score it on; repeatable")
+                        help="a pretraining run (or checkpoint / model directory; a BC or Diffusion Policy run gets the "
+                             "decoded error only) and the tasks to score it on; repeatable")
     parser.add_argument("--demos", default="data/{task}", help="demonstration buffer per task (default: data/{task})")
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 0.8, 1.0],
                         help="masking ratios of the target tokens (default: 0.5 0.8 1.0)")
@@ -112,17 +122,19 @@ def main(argv: list[str] | None = None) -> int:
     results, decoded = [], []
     bar = tqdm(total=sum(len(tasks) for _, tasks in args.run) * (len(args.ratios) + 1), desc="demo fit")
     for run, tasks in args.run:
-        model = MMaDAModel.load(resolve_model_dir(run))
+        actor = load_actor(run)
+        model = actor.model if isinstance(actor, MMaDAActor) else actor  # a baseline has no tokens to score
         model.eval()
         for task in tasks:
             demos = DemoBuffer.open(args.demos.format(task=task))  # opened once for every ratio and the decoding
-            for ratio in args.ratios:
+            for ratio in args.ratios if isinstance(model, MMaDAModel) else ():
                 scores = token_accuracy(model, demos, ratio, args.minibatches, args.batch_size, args.seed)
                 results.append({"run": str(run), "task": task, "ratio": ratio, **scores})
-                bar.update()
+            bar.update(len(args.ratios))
             if args.decode_minibatches:
                 mae = decoded_chunk_error(model, demos, args.decode_minibatches, args.batch_size, args.seed)
-                decoded.append({"run": str(run), "task": task, "num_denoise_steps": model.sampler.config.num_steps,
+                steps = model.sampler.config.num_steps if isinstance(model, MMaDAModel) else None
+                decoded.append({"run": str(run), "task": task, "num_denoise_steps": steps,
                                 "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
             bar.update()
     bar.close()
@@ -132,9 +144,10 @@ def main(argv: list[str] | None = None) -> int:
              f"{r['goal_accuracy']:.3f}" if "goal_accuracy" in r else "-", f"{r['loss_action']:.3f}"] for r in results]
     table = markdown_table(header, rows)
     if decoded:
-        table += "\n\nGreedy decoded chunks against the demonstrated ones (mean absolute error, action units):\n\n"
+        table += ("\n\nPredicted chunks (MMaDA-VLA: greedily decoded, N steps; baselines: as they act) against the "
+                  "demonstrated ones (mean absolute error, action units):\n\n")
         table += markdown_table(["run", "task", "N", "all dims", "per dim"],
-                                [[d["run"], d["task"], d["num_denoise_steps"], f"{d['chunk_mae']:.4f}",
+                                [[d["run"], d["task"], d["num_denoise_steps"] or "-", f"{d['chunk_mae']:.4f}",
                                   " ".join(f"{x:.4f}" for x in d["chunk_mae_per_dim"])] for d in decoded])
 
     import matplotlib
@@ -146,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     for run, tasks in args.run:
         for task in tasks:
             mine = [r for r in results if r["run"] == str(run) and r["task"] == task]
+            if not mine:  # a baseline: no tokens
+                continue
             ax.plot([r["ratio"] for r in mine], [r["action_accuracy"] for r in mine], marker="o", label=f"{run.name} / {task}")
     ax.set_xlabel("masking ratio of the targets")
     ax.set_ylabel("action-token accuracy")

@@ -288,6 +288,26 @@ def toy_runs(pick_demos, tmp_path_factory) -> dict[str, Path]:
     return runs
 
 
+def test_demo_fit_sets_the_baselines_chunks_beside_the_policys(toy_runs, toy_pretrain_run, pick_demos, tmp_path):
+    """``benchmarks/demo_fit.py`` with a BC / Diffusion Policy run: its chunk error on the same windows
+    (no token accuracies: a baseline has no tokens), beside a masked-diffusion policy's."""
+    from script_loader import load_script
+
+    bench = load_script("benchmarks/demo_fit.py", "demo_fit")
+    runs = [f"{toy_runs['bc']}=PickCube-v1", f"{toy_pretrain_run}=PickCube-v1"]
+    args = [*(a for r in runs for a in ("--run", r)), "--demos", str(pick_demos), "--ratios", "1.0",
+            "--minibatches", "1", "--batch-size", "2", "--decode-minibatches", "2"]
+    assert bench.main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert bench.main([*args, "--out", str(tmp_path / "b")]) == 0
+    a, b = (json.loads((tmp_path / d / "demo_fit.json").read_text()) for d in "ab")
+    assert [r["run"] for r in a["results"]] == [str(toy_pretrain_run)]  # token accuracies: the policy's only
+    bc, ours = a["decoded"]
+    assert bc["num_denoise_steps"] is None and ours["num_denoise_steps"] >= 1
+    assert len(bc["chunk_mae_per_dim"]) == 7 and bc["chunk_mae"] > 0
+    assert a["decoded"] == b["decoded"]  # the same windows, the same (deterministic) predictions
+    assert f"| {toy_runs['bc']} | PickCube-v1 | - |" in (tmp_path / "a" / "demo_fit.md").read_text()
+
+
 @pytest.mark.parametrize("algo", sorted(ALGOS))
 def test_recipe_trains_logs_checkpoints_and_evaluates(toy_runs, algo):
     run_dir = toy_runs[algo]
