@@ -197,10 +197,12 @@ def test_stored_path_log_prob_is_recomputed_exactly(model, observations):
     torch.testing.assert_close(rescored, td[LOG_PROBS_KEY], rtol=1e-4, atol=1e-3)
 
 
-def test_policy_cross_attends_to_its_own_cnn_features_of_the_image(model, observations, tmp_path):
-    """``visual_encoder_channels``: the denoiser reads the observation image through a CNN it trains."""
+@pytest.mark.parametrize("keypoints", [None, 4], ids=["cells", "keypoints"])
+def test_policy_cross_attends_to_its_own_cnn_features_of_the_image(model, observations, tmp_path, keypoints):
+    """``visual_encoder_channels``: the denoiser reads the observation image through a CNN it trains
+    (every cell of its last feature map, or with ``visual_keypoints`` one token per spatial-softmax keypoint)."""
     tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
-    overrides = {"cross_attention_to_visual": True, "visual_encoder_channels": [8, 16, 32]}
+    overrides = {"cross_attention_to_visual": True, "visual_encoder_channels": [8, 16, 32], "visual_keypoints": keypoints}
     config = MMaDAConfig(chunk_size=CHUNK, denoiser="tiny", sampler={"num_steps": 3}, denoiser_overrides=overrides)
     torch.manual_seed(0)
     seeing = MMaDAModel(config, tokenizers).eval()
@@ -231,6 +233,8 @@ def test_policy_cross_attends_to_its_own_cnn_features_of_the_image(model, observ
     (losses["loss_action"] + losses["loss_goal"]).backward()
     conv = seeing.denoiser.visual_encoder.cnn[0].weight
     assert conv.grad is not None and conv.grad.abs().sum() > 0
+    memory = seeing.denoiser._visual_context(obs[IMAGE_KEY], 3)  # what the cross-attention reads
+    assert memory.shape == (3, keypoints or (64 // 8) ** 2, seeing.denoiser.config.d_model)
     reloaded = MMaDAModel.load(seeing.save(tmp_path / "seeing")).eval()
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         torch.testing.assert_close(MMaDAActor(reloaded)(obs.clone())[ACTION_TOKENS_KEY], actor(obs.clone())[ACTION_TOKENS_KEY])

@@ -145,6 +145,31 @@ def test_cross_attention_to_visual():
     assert len(module.in_keys) == 3
 
 
+def test_keypoint_tokens_are_the_expected_positions_of_learned_maps():
+    from mmada_rl.diffusion.visual import ConvPatchEncoder, SpatialSoftmax
+
+    pool = SpatialSoftmax(1, num_keypoints=1)
+    with torch.no_grad():
+        pool.keypoints.weight.fill_(50.0)
+        pool.keypoints.bias.zero_()
+    x = torch.zeros(1, 1, 5, 9)
+    x[0, 0, 1, 7] = 1.0  # one bright cell: row 1 of 5, column 7 of 9
+    xy = pool(x)[0]
+    torch.testing.assert_close(xy, torch.tensor([-1 + 2 * 7 / 8, -1 + 2 * 1 / 4]), atol=1e-4, rtol=0)
+    enc = ConvPatchEncoder((8, 16), keypoints=3)
+    images = torch.randint(0, 256, (2, 3, 16, 16), dtype=torch.uint8)
+    tokens = enc(images)  # (B, K, C): each keypoint's position embedded, plus its own embedding
+    assert tokens.shape == (2, 3, 16)
+    positions = enc.pool(enc.cnn(images.float() / 127.5 - 1.0)).reshape(2, 3, 2)
+    torch.testing.assert_close(tokens, enc.keypoint_position(positions) + enc.keypoint_embedding)
+    with pytest.raises(ValueError, match="keypoints must be an int >= 0"):
+        ConvPatchEncoder((8, 16), keypoints=-1)
+    with pytest.raises(ValueError, match="needs visual_encoder_channels"):
+        DenoiserConfig(cross_attention_to_visual=True, visual_keypoints=4)
+    with pytest.raises(ValueError, match="visual_keypoints must be a positive int"):
+        DenoiserConfig(cross_attention_to_visual=True, visual_encoder_channels=[8], visual_keypoints=0)
+
+
 def test_proprio_value_embedding_reads_state_bins_as_ordered_values():
     vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16,
                                                proprio_codebook_size=64))

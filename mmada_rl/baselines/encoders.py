@@ -21,7 +21,7 @@ from torch import nn
 from mmada_rl.baselines.normalization import StateStandardizer
 from mmada_rl.data.augment import RandomShift, random_shift
 from mmada_rl.data.windows import kept_state_dims
-from mmada_rl.diffusion.visual import conv_stack
+from mmada_rl.diffusion.visual import SpatialSoftmax, conv_stack
 
 __all__ = ["EncoderConfig", "ObservationEncoder", "POOLS", "RandomShift", "SpatialSoftmax", "random_shift"]
 
@@ -110,7 +110,7 @@ class ObservationEncoder(nn.Module):
         width = config.channels[-1]
         side = image_size // stride
         if config.pool == "spatial_softmax":
-            pool, pooled = SpatialSoftmax(width, config.num_keypoints, side, side), 2 * config.num_keypoints
+            pool, pooled = SpatialSoftmax(width, config.num_keypoints), 2 * config.num_keypoints
         else:
             pool, pooled = nn.Flatten(), width * side * side
         return nn.Sequential(*conv_stack(config.channels, config.norm_groups), pool, nn.Linear(pooled, config.image_features),
@@ -131,23 +131,3 @@ class ObservationEncoder(nn.Module):
                              f"{self.image_size}x{self.image_size}; use env image_size={self.image_size}.")
         pixels = image.float() / 127.5 - 1.0  # (B, 3, H, W) in [-1, 1]
         return torch.cat([self.cnn(pixels), features], -1)  # (B, F)
-
-
-class SpatialSoftmax(nn.Module):
-    """``[B, C, H, W]`` -> ``[B, 2 * num_keypoints]``: per keypoint map, the softmax-weighted mean (x, y) in ``[-1, 1]``.
-
-    Args:
-        in_channels: ``C``.
-        num_keypoints: keypoint maps (a 1x1 convolution of the input).
-        height, width: size of the input map.
-    """
-
-    def __init__(self, in_channels: int, num_keypoints: int, height: int, width: int) -> None:
-        super().__init__()
-        self.keypoints = nn.Conv2d(in_channels, num_keypoints, 1)
-        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height), torch.linspace(-1, 1, width), indexing="ij")
-        self.register_buffer("grid", torch.stack([xs.flatten(), ys.flatten()], -1), persistent=False)  # (H*W, 2)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        attention = self.keypoints(x).flatten(2).softmax(-1)  # (B, N, H*W)
-        return (attention @ self.grid).flatten(1)  # (B, 2N)

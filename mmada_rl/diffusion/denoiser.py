@@ -72,6 +72,11 @@ class DenoiserConfig:
             is then the uint8 observation image ``[B, 3, H, W]``, and its CNN
             features (one per cell of the last feature map) are what the
             sequence attends to. ``None``: ``visual`` holds the features already.
+        visual_keypoints: with ``visual_encoder_channels``, pool the CNN's last feature
+            map into this many spatial-softmax keypoints (the BC baseline's pooling) and
+            let the sequence attend to one token per keypoint (its expected position,
+            embedded) instead of to every cell: the image narrowed to positions.
+            ``None``: the cells.
         proprio_value_embedding: add to each proprioception token a sinusoidal
             embedding of its bin's value (bin index over the number of bins, in
             ``[0, 1]``), whose features lie further apart the further apart
@@ -104,6 +109,7 @@ class DenoiserConfig:
     cross_attention_to_visual: bool = False
     visual_dim: int | None = None
     visual_encoder_channels: list[int] | None = None
+    visual_keypoints: int | None = None
     proprio_value_embedding: bool = False
     action_value_embedding: bool = False
     tie_embeddings: bool = True
@@ -124,11 +130,16 @@ class DenoiserConfig:
             raise ValueError(f"attention must be 'bidirectional' or 'block_causal', got {self.attention!r}.")
         if self.visual_dim is not None and (not isinstance(self.visual_dim, int) or self.visual_dim < 1):
             raise ValueError(f"visual_dim must be a positive int or None, got {self.visual_dim!r}.")
+        if self.visual_keypoints is not None and self.visual_encoder_channels is None:
+            raise ValueError("visual_keypoints pools the denoiser's own CNN: it needs visual_encoder_channels "
+                             "(e.g. [32, 64, 128]).")
         if self.visual_encoder_channels is not None:
             self.visual_encoder_channels = [int(c) for c in self.visual_encoder_channels]
             if not self.cross_attention_to_visual:
                 raise ValueError("visual_encoder_channels needs cross_attention_to_visual=true "
                                  "(the encoder's features are read by the cross-attention).")
+            if self.visual_keypoints is not None and (not isinstance(self.visual_keypoints, int) or self.visual_keypoints < 1):
+                raise ValueError(f"visual_keypoints must be a positive int or None, got {self.visual_keypoints!r}.")
             if self.visual_dim is not None and self.visual_dim != self.visual_encoder_channels[-1]:
                 raise ValueError(f"visual_dim={self.visual_dim} differs from the encoder's last width "
                                  f"{self.visual_encoder_channels[-1]}; leave visual_dim unset.")
@@ -219,7 +230,7 @@ class MaskedDiffusionDenoiser(nn.Module):
             self.action_value_embedding = ScalarEmbedding(dim, scale=200.0, max_period=200.0)
         self.visual_proj = self.visual_encoder = None
         if config.encodes_images:
-            self.visual_encoder = ConvPatchEncoder(config.visual_encoder_channels)
+            self.visual_encoder = ConvPatchEncoder(config.visual_encoder_channels, keypoints=config.visual_keypoints or 0)
         if config.cross_attention_to_visual:
             visual_dim = self.visual_encoder.out_features if self.visual_encoder else config.visual_dim or dim
             self.visual_proj = nn.Sequential(nn.Linear(visual_dim, dim), nn.LayerNorm(dim))

@@ -6,9 +6,13 @@ README's PushCube and PickCube analyses). :class:`ConvPatchEncoder` gives the
 denoiser a second, continuous view of the same observation: a small strided
 CNN, trained end to end with the denoiser, whose last feature map becomes
 ``N = (H / 2**n) * (W / 2**n)`` feature vectors, each with a fixed 2-D sin-cos
-code of its cell, for the cross-attention sublayers to read.
+code of its cell, for the cross-attention sublayers to read; or, with
+``keypoints=K``, ``K`` tokens, each the embedded expected image position of one
+learned keypoint map (:class:`SpatialSoftmax`, the pooling of the BC baseline's
+encoder): a narrow view of the image, positions only, where the cells let the
+denoiser read (and memorise) every texture of the scene.
 
-:func:`conv_stack` is the CNN body it shares with the baselines' observation encoder.
+:func:`conv_stack` and :class:`SpatialSoftmax` are shared with the baselines' observation encoder.
 """
 from __future__ import annotations
 
@@ -18,7 +22,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-__all__ = ["ConvPatchEncoder", "conv_stack", "sincos_2d"]
+__all__ = ["ConvPatchEncoder", "SpatialSoftmax", "conv_stack", "sincos_2d"]
 
 
 def conv_stack(channels: Sequence[int], norm_groups: int = 8) -> nn.Sequential:
@@ -47,27 +51,69 @@ def sincos_2d(height: int, width: int, dim: int, device=None) -> torch.Tensor:
     return torch.cat([angles_y.sin(), angles_y.cos(), angles_x.sin(), angles_x.cos()], -1)  # (H*W, D)
 
 
+class SpatialSoftmax(nn.Module):
+    """``[B, C, H, W]`` -> ``[B, 2 * num_keypoints]``: per keypoint map, the softmax-weighted mean (x, y) in ``[-1, 1]``.
+
+    Args:
+        in_channels: ``C``.
+        num_keypoints: keypoint maps (a 1x1 convolution of the input).
+
+    Examples:
+        >>> pool = SpatialSoftmax(8, num_keypoints=4)
+        >>> pool(torch.zeros(2, 8, 6, 6)).shape
+        torch.Size([2, 8])
+    """
+
+    def __init__(self, in_channels: int, num_keypoints: int) -> None:
+        super().__init__()
+        self.keypoints = nn.Conv2d(in_channels, num_keypoints, 1)
+
+    @staticmethod
+    def grid(height: int, width: int, device=None) -> torch.Tensor:
+        """The (x, y) of every cell, row-major, in ``[-1, 1]``: ``[H * W, 2]``."""
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height, device=device),
+                                torch.linspace(-1, 1, width, device=device), indexing="ij")
+        return torch.stack([xs.flatten(), ys.flatten()], -1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        attention = self.keypoints(x).flatten(2).softmax(-1)  # (B, N, H*W)
+        return (attention @ self.grid(*x.shape[-2:], device=x.device)).flatten(1)  # (B, 2N)
+
+
 class ConvPatchEncoder(nn.Module):
     """uint8 images ``[B, 3, H, W]`` -> cell features ``[B, (H / 2**n) * (W / 2**n), channels[-1]]``.
 
     Args:
         channels: output widths of the stride-2 convolutions (``n = len(channels)``).
         norm_groups: GroupNorm groups (the largest divisor of each width up to this).
+        keypoints: ``K > 0``: return ``K`` keypoint tokens ``[B, K, channels[-1]]`` (each keypoint's
+            expected (x, y) through a linear map, plus the keypoint's own learned embedding) instead
+            of the cells.
 
     Examples:
         >>> enc = ConvPatchEncoder((16, 32, 64))
         >>> enc(torch.zeros(2, 3, 64, 64, dtype=torch.uint8)).shape
         torch.Size([2, 64, 64])
+        >>> ConvPatchEncoder((16, 32, 64), keypoints=8)(torch.zeros(2, 3, 64, 64, dtype=torch.uint8)).shape
+        torch.Size([2, 8, 64])
     """
 
-    def __init__(self, channels: Sequence[int] = (32, 64, 128), norm_groups: int = 8) -> None:
+    def __init__(self, channels: Sequence[int] = (32, 64, 128), norm_groups: int = 8, keypoints: int = 0) -> None:
         super().__init__()
         self.channels = tuple(int(c) for c in channels)
         if not self.channels or min(self.channels) < 1:
             raise ValueError(f"channels must be a non-empty list of positive widths, got {list(self.channels)!r}.")
         if self.channels[-1] % 4:
             raise ValueError(f"the last width must be a multiple of 4 (2-D position codes), got {self.channels[-1]}.")
+        if not isinstance(keypoints, int) or keypoints < 0:
+            raise ValueError(f"keypoints must be an int >= 0, got {keypoints!r}.")
         self.cnn = conv_stack(self.channels, norm_groups)
+        self.num_keypoints = keypoints
+        if keypoints:
+            width = self.channels[-1]
+            self.pool = SpatialSoftmax(width, keypoints)
+            self.keypoint_position = nn.Linear(2, width)
+            self.keypoint_embedding = nn.Parameter(torch.randn(keypoints, width) * 0.02)
 
     @property
     def out_features(self) -> int:
@@ -81,6 +127,9 @@ class ConvPatchEncoder(nn.Module):
             raise ValueError(f"image side {tuple(image.shape[-2:])} is not a multiple of 2**len(channels)={stride}.")
         pixels = image.float() / 127.5 - 1.0  # (B, 3, H, W) in [-1, 1]
         features = self.cnn(pixels)  # (B, C, h, w)
+        if self.num_keypoints:
+            xy = self.pool(features).reshape(features.shape[0], self.num_keypoints, 2)  # (B, K, 2) in [-1, 1]
+            return self.keypoint_position(xy) + self.keypoint_embedding  # (B, K, C)
         _, channels, h, w = features.shape
         cells = features.flatten(2).transpose(1, 2)  # (B, h*w, C)
         return cells + sincos_2d(h, w, channels, device=cells.device)
