@@ -35,18 +35,15 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
 from tqdm.auto import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
-from mmada_rl.data import DemoBuffer, make_window_buffer  # noqa: E402
-from mmada_rl.diffusion.schedules import UniformNoiseSchedule  # noqa: E402
+from mmada_rl.data import DemoBuffer  # noqa: E402
 from mmada_rl.evaluation import load_actor  # noqa: E402
-from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY  # noqa: E402
-from mmada_rl.objectives import MaskedDiffusionLoss  # noqa: E402
 from mmada_rl.policy import MMaDAActor, MMaDAModel  # noqa: E402
+from mmada_rl.training.validation import chunk_error, fixed_windows, masked_token_scores  # noqa: E402
 
 
 def parse_run(text: str) -> tuple[Path, list[str]]:
@@ -56,42 +53,6 @@ def parse_run(text: str) -> tuple[Path, list[str]]:
     if not sep or not run or not names:
         raise argparse.ArgumentTypeError(f"expected RUN=TASK[,TASK...], got {text!r}.")
     return Path(run), names
-
-
-@torch.no_grad()
-def token_accuracy(model: MMaDAModel, demos: DemoBuffer, ratio: float, minibatches: int, batch_size: int, seed: int) -> dict:
-    """Mean masked-token accuracy (and cross-entropy) of ``model`` on ``demos`` windows at one masking ratio."""
-    torch.manual_seed(seed)
-    loss = MaskedDiffusionLoss(model.denoiser, schedule=UniformNoiseSchedule(ratio, ratio))
-    windows = make_window_buffer(demos, model.config.chunk_size, batch_size, seed=seed)
-    totals: dict[str, float] = {}
-    for _ in range(minibatches):
-        w = windows.sample()
-        out = loss(model.loss_inputs(w))
-        for key in ("action_accuracy", "goal_accuracy", "loss_action", "loss_goal"):
-            if key in out.keys():
-                totals[key] = totals.get(key, 0.0) + float(out[key]) / minibatches
-    return totals
-
-
-@torch.no_grad()
-def decoded_chunk_error(policy, demos: DemoBuffer, minibatches: int, batch_size: int, seed: int) -> list[float]:
-    """Mean absolute error per action dimension of the chunks ``policy`` predicts against the demonstrated ones:
-    an :class:`MMaDAModel` decoded greedily, or a baseline chunk policy (BC, Diffusion Policy) as it acts."""
-    torch.manual_seed(seed)
-    is_mmada = isinstance(policy, MMaDAModel)
-    chunk_size = policy.config.chunk_size if is_mmada else policy.chunk_size
-    windows = make_window_buffer(demos, chunk_size, batch_size, seed=seed)
-    errors = []
-    for _ in range(minibatches):
-        w = windows.sample()
-        if is_mmada:
-            chunk = policy.act(w, greedy=True, decode_goal=False).chunk  # (B, K, A)
-        else:  # the baseline writes its chunk where the window holds the demonstrated one: act on a copy
-            chunk = policy(w.clone()).get(ACTION_CHUNK_KEY)  # (B, K, A)
-        real = ~w.get(ACTION_IS_PAD_KEY).bool()  # (B, K)
-        errors.append((chunk - w.get(ACTION_CHUNK_KEY)).abs()[real])  # (M, A)
-    return torch.cat(errors).mean(0).tolist()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,12 +88,15 @@ def main(argv: list[str] | None = None) -> int:
         model.eval()
         for task in tasks:
             demos = DemoBuffer.open(args.demos.format(task=task))  # opened once for every ratio and the decoding
+            chunk_size = model.config.chunk_size if isinstance(model, MMaDAModel) else model.chunk_size
             for ratio in args.ratios if isinstance(model, MMaDAModel) else ():
-                scores = token_accuracy(model, demos, ratio, args.minibatches, args.batch_size, args.seed)
+                batches = fixed_windows(demos, chunk_size, args.minibatches, args.batch_size, args.seed)
+                scores = masked_token_scores(model, batches, ratio, seed=args.seed)
                 results.append({"run": str(run), "task": task, "ratio": ratio, **scores})
             bar.update(len(args.ratios))
             if args.decode_minibatches:
-                mae = decoded_chunk_error(model, demos, args.decode_minibatches, args.batch_size, args.seed)
+                batches = fixed_windows(demos, chunk_size, args.decode_minibatches, args.batch_size, args.seed)
+                mae = chunk_error(model, batches)
                 steps = model.sampler.config.num_steps if isinstance(model, MMaDAModel) else None
                 decoded.append({"run": str(run), "task": task, "num_denoise_steps": steps,
                                 "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})

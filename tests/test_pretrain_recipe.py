@@ -172,3 +172,24 @@ def test_cpu_config_shortens_the_sequence_and_trains(pick_demos, tmp_path):
     assert saved["observation_tokens"] is False and saved["proprio_drop_dims"] == list(range(9, 18))
     assert saved["denoiser_overrides"]["d_model"] == 128
     assert "sequence length 92;" in proc.stdout  # 214 with maniskill.yaml's layout (benchmarks/train_throughput.py)
+
+
+def test_held_out_demonstrations_are_scored_while_training(toy_run, pick_demos, push_demos, tmp_path):
+    """``validation.dir``: every ``validation.interval`` steps and at the end, the saved weights' scores on fixed
+    windows of a held-out buffer (``val/...``: masked-token scores, greedy chunk error) are logged; a buffer of
+    another task fails with one clear error."""
+    run_dir = tmp_path / "val"
+    common = [f"data.dir={pick_demos}", "data.collect_episodes=0", f"tokenizers.dir={toy_run / 'tokenizers'}",
+              "eval.episodes=0", "logger.log_interval=5"]
+    proc = run_recipe(f"run_dir={run_dir}", *common, "optim.total_steps=3", f"validation.dir={pick_demos}",
+                      "validation.interval=2", "validation.minibatches=1", "validation.batch_size=2")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    history = {row["step"]: row for row in json.loads((run_dir / "history.json").read_text())}
+    assert set(history) == {2, 3}  # the report at step 2 is logged although 2 is not a logging step
+    final = json.loads((run_dir / "final.json").read_text())
+    for scores in (history[2], final):
+        assert scores["val/chunk_mae"] > 0 and 0 <= scores["val/action_accuracy"] <= 1
+        assert scores["val/loss_action"] > 0 and "val/loss_goal" in scores
+    assert (run_dir / "logs" / "scalars" / "val" / "chunk_mae.csv").read_text().count("\n") == 2  # steps 2 and 3
+    proc = run_recipe(f"run_dir={tmp_path / 'bad'}", *common, "optim.total_steps=1", f"validation.dir={push_demos}")
+    assert proc.returncode != 0 and "PushCube-v1" in proc.stderr and "PickCube-v1" in proc.stderr

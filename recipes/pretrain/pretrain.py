@@ -9,7 +9,8 @@ Reads a demonstration buffer (collecting it first if missing) — or one per
 task when ``tasks`` lists several, the instruction then selecting the task —
 fits the tokenizers (or loads ``tokenizers.dir``), trains the denoiser on chunk windows
 with the masked-diffusion loss, evaluates in ManiSkill every ``eval.interval``
-steps and at the end, and checkpoints atomically every ``checkpoint.interval`` steps.
+steps and at the end, scores held-out demonstrations (``validation.dir``) every
+``validation.interval`` steps and at the end, and checkpoints atomically every ``checkpoint.interval`` steps.
 With ``ema.enabled=true`` a moving average of the denoiser's weights is what is
 evaluated and saved (``ema.evaluate_raw=true`` also evaluates the optimizer's own
 weights, as ``eval_raw/...``: the two compared within one run).
@@ -33,6 +34,7 @@ from mmada_rl.training import (
     save_checkpoint,
     start_run,
 )
+from mmada_rl.training.validation import validation_metrics
 from utils import (
     make_data,
     make_demo_buffers,
@@ -42,6 +44,7 @@ from utils import (
     make_model,
     make_optim,
     make_tokenizers,
+    make_validation,
     task_list,
 )
 
@@ -77,6 +80,15 @@ def evaluate_saved(cfg: DictConfig, model, ema, step: int) -> dict:
     return out
 
 
+def validate(model, ema, batches: list) -> dict:
+    """``val/...`` scores of the weights the run saves (the moving average with ``ema.enabled``) on the
+    held-out windows."""
+    if ema is None:
+        return validation_metrics(model, batches)
+    with ema.applied():
+        return validation_metrics(model, batches)
+
+
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
     run_dir, config = start_run(cfg)
@@ -89,6 +101,7 @@ def main(cfg: DictConfig) -> None:
     optimizer, scheduler = make_optim(cfg, model)
     logger = make_logger(cfg, run_dir)
     generators = window_generators(data)
+    held_out = make_validation(cfg, model)  # drawn before training: the same windows at every report
 
     start = 0
     def load_weights(model_dir: Path) -> None:
@@ -118,10 +131,13 @@ def main(cfg: DictConfig) -> None:
         done = step + 1
         metrics = {f"train/{k}": v for k, v in scalars.items()}
         metrics["time/step_s"] = time.perf_counter() - t0
+        if held_out and cfg.validation.interval and done % int(cfg.validation.interval) == 0 and done < total:
+            metrics.update(validate(model, ema, held_out))
         if cfg.eval.interval and int(cfg.eval.episodes) > 0 and done % int(cfg.eval.interval) == 0 and done < total:
             metrics.update(evaluate_saved(cfg, model, ema, done))
             model.train()
-        if done % int(cfg.logger.log_interval) == 0 or done == total or "eval/success_once" in metrics:
+        reported = any(key.startswith(("eval/", "val/")) for key in metrics)
+        if done % int(cfg.logger.log_interval) == 0 or done == total or reported:
             for key, value in metrics.items():
                 logger.log_scalar(key, value, step=done)
             history.append({"step": done, **metrics})
@@ -133,11 +149,13 @@ def main(cfg: DictConfig) -> None:
     pbar.close()
 
     final = {"step": total}
+    if total > start and held_out:
+        final.update(validate(model, ema, held_out))
     if total > start and int(cfg.eval.episodes) > 0:
         final.update(evaluate_saved(cfg, model, ema, total))
-        for key, value in final.items():
-            if key.startswith(("eval/", "eval_raw/")):
-                logger.log_scalar(key, value, step=total)
+    for key, value in final.items():
+        if key.startswith(("eval/", "eval_raw/", "val/")):
+            logger.log_scalar(key, value, step=total)
     (run_dir / "history.json").write_text(json.dumps(history, indent=2))
     (run_dir / "final.json").write_text(json.dumps(final, indent=2))
     print("[pretrain] done:", json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in final.items()}))

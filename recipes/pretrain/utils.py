@@ -16,6 +16,7 @@ from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
 from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler
 from mmada_rl.training.demos import open_demos
+from mmada_rl.training.validation import fixed_windows
 
 
 def make_env_config(cfg: DictConfig) -> EnvConfig:
@@ -141,3 +142,17 @@ def make_optim(cfg: DictConfig, model: MMaDAModel):
 
 def make_logger(cfg: DictConfig, run_dir: Path):
     return training.make_logger(cfg.logger.backend, run_dir)
+
+
+def make_validation(cfg: DictConfig, model: MMaDAModel) -> list | None:
+    """Fixed window batches of the held-out buffer(s) ``validation.dir`` (``{task}`` filled in per task), checked
+    against the env config like the training demonstrations; ``None`` without ``validation.dir``."""
+    if cfg.validation.dir is None:
+        return None
+    env = make_env_config(cfg)
+    batches = []
+    for task in task_list(cfg):
+        buffer = open_demos(str(cfg.validation.dir).format(task=task), EnvConfig(**{**env.to_dict(), "task": task}))
+        batches += fixed_windows(buffer, model.config.chunk_size, int(cfg.validation.minibatches),
+                                 int(cfg.validation.batch_size), seed=int(cfg.seed))
+    return batches
