@@ -49,7 +49,8 @@ def main(cfg: DictConfig) -> None:
           f"{params / 1e6:.2f}M parameters; chunk {policy.chunk_size}x{policy.action_dim}"
           + ("; evaluates the moving average of its weights" if ema is not None else ""))
 
-    total, history, eval_every = int(cfg.optim.total_steps), [], int(cfg.eval.interval or 0)
+    history = list(extra.get("history", []))  # the rows logged up to the checkpoint resumed from
+    total, eval_every = int(cfg.optim.total_steps), int(cfg.eval.interval or 0)
     policy.train()
     pbar = tqdm(range(start, total), initial=start, total=total, desc=cfg.algo)
     for step in pbar:
@@ -69,7 +70,7 @@ def main(cfg: DictConfig) -> None:
         pbar.set_postfix(loss=f"{metrics['train/loss']:.4f}")
         if done % int(cfg.checkpoint.interval) == 0 or done == total:
             save(cfg, run_dir, done, policy=policy, ema=ema, optimizer=optimizer, scheduler=scheduler, config=config,
-                 generators=generators)
+                 generators=generators, history=history)
     pbar.close()
 
     final = {"step": total}

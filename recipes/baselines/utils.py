@@ -97,12 +97,13 @@ def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, sched
 
 
 def save(cfg: DictConfig, run_dir: Path, step: int, *, policy: ChunkPolicy, ema: WeightEMA | None, optimizer, scheduler,
-         config: dict, generators: dict) -> None:
+         config: dict, generators: dict, history: list) -> None:
     """Checkpoint ``step``; with a moving average, ``model/`` holds the average (what is evaluated and loaded) and
-    ``trainer.pt`` the optimizer's own weights to resume from."""
+    ``trainer.pt`` the optimizer's own weights to resume from. ``history``, the rows logged so far, travels in
+    ``trainer.pt`` so that a resumed run's ``history.json`` starts at step 1."""
     with ema_checkpointed(ema) as extra:
         save_checkpoint(run_dir, step, model=policy, optimizer=optimizer, scheduler=scheduler, config=config,
-                        generators=generators, extra=extra, keep=int(cfg.checkpoint.keep))
+                        generators=generators, extra={**extra, "history": history}, keep=int(cfg.checkpoint.keep))
 
 
 def evaluate(cfg: DictConfig, policy: ChunkPolicy) -> dict:

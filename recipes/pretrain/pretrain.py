@@ -103,7 +103,7 @@ def main(cfg: DictConfig) -> None:
     generators = window_generators(data)
     held_out = make_validation(cfg, model)  # drawn before training: the same windows at every report
 
-    start = 0
+    start, history = 0, []
     def load_weights(model_dir: Path) -> None:
         model.denoiser.load_state_dict(type(model).load(model_dir).denoiser.state_dict())
 
@@ -113,13 +113,14 @@ def main(cfg: DictConfig) -> None:
     if ckpt is not None:
         start = ckpt.step
         resume_own_weights(model.denoiser, ema, ckpt.trainer_state.get("extra", {}))
+        history = list(ckpt.trainer_state.get("extra", {}).get("history", []))  # the rows logged up to the checkpoint
         print(f"[pretrain] resumed from {ckpt.path} at step {start}")
     params = sum(p.numel() for p in model.denoiser.parameters())
     demos = ", ".join(f"{b.metadata.task}: {b.metadata.num_episodes} demos, {len(b)} transitions" for b in buffers)
     print(f"[pretrain] {demos}; denoiser "
           f"{params / 1e6:.2f}M parameters; sequence length {model.layout.length}; vocabulary {model.vocab.size}")
 
-    total, history = int(cfg.optim.total_steps), []
+    total = int(cfg.optim.total_steps)
     model.train()
     pbar = tqdm(range(start, total), initial=start, total=total, desc="pretrain")
     for step in pbar:
@@ -145,7 +146,8 @@ def main(cfg: DictConfig) -> None:
         if done % int(cfg.checkpoint.interval) == 0 or done == total:
             with ema_checkpointed(ema) as extra:  # the average is the saved model; extra: the weights to resume
                 save_checkpoint(run_dir, done, model=model, optimizer=optimizer, scheduler=scheduler, config=config,
-                                generators=generators, extra=extra, keep=int(cfg.checkpoint.keep))
+                                generators=generators, extra={**extra, "history": history},
+                                keep=int(cfg.checkpoint.keep))
     pbar.close()
 
     final = {"step": total}
