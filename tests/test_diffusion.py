@@ -253,6 +253,17 @@ def test_denoiser_config_validation_and_presets():
     assert DenoiserConfig.preset("base").num_heads == 8
 
 
+def test_dropout_regularises_training_passes_only():
+    layout = make_layout()
+    ids, level = make_batch(layout, batch=2), torch.tensor([0.3, 0.9])
+    net = tiny(layout, dropout=0.5).train()
+    assert not torch.equal(net(ids, level), net(ids, level))  # a fresh dropout mask each training pass
+    net.eval()
+    assert torch.equal(net(ids, level), net(ids, level))
+    with pytest.raises(ValueError, match="dropout"):
+        DenoiserConfig(dropout=1.0)
+
+
 def test_pretrained_path_errors(tmp_path):
     layout = make_layout()
     with pytest.raises(FileNotFoundError, match="does not exist"):
