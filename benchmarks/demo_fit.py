@@ -89,10 +89,11 @@ def main(argv: list[str] | None = None) -> int:
         for task in tasks:
             demos = DemoBuffer.open(args.demos.format(task=task))  # opened once for every ratio and the decoding
             chunk_size = model.config.chunk_size if isinstance(model, MMaDAModel) else model.chunk_size
-            for ratio in args.ratios if isinstance(model, MMaDAModel) else ():
-                batches = fixed_windows(demos, chunk_size, args.minibatches, args.batch_size, args.seed)
-                scores = masked_token_scores(model, batches, ratio, seed=args.seed)
-                results.append({"run": str(run), "task": task, "ratio": ratio, **scores})
+            if isinstance(model, MMaDAModel):  # a baseline has no tokens to score
+                batches = fixed_windows(demos, chunk_size, args.minibatches, args.batch_size, args.seed)  # every ratio's
+                for ratio in args.ratios:
+                    scores = masked_token_scores(model, batches, ratio, seed=args.seed)
+                    results.append({"run": str(run), "task": task, "ratio": ratio, **scores})
             bar.update(len(args.ratios))
             if args.decode_minibatches:
                 batches = fixed_windows(demos, chunk_size, args.decode_minibatches, args.batch_size, args.seed)

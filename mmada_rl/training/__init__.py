@@ -7,13 +7,14 @@ from mmada_rl.training.checkpoint import (
     resume_training,
     save_checkpoint,
 )
-from mmada_rl.training.ema import WeightEMA, ema_checkpointed, resume_own_weights
+from mmada_rl.training.ema import WeightEMA, ema_applied, ema_checkpointed, resume_own_weights
 from mmada_rl.training.optim import make_optimizer, make_scheduler, optimizer_step
 from mmada_rl.training.run import start_run
 
 __all__ = [
     "Checkpoint",
     "WeightEMA",
+    "ema_applied",
     "ema_checkpointed",
     "latest_checkpoint",
     "load_checkpoint",

@@ -104,6 +104,12 @@ class WeightEMA:
             self.module.load_state_dict(own)
 
 
+def ema_applied(ema: WeightEMA | None) -> AbstractContextManager:
+    """:meth:`WeightEMA.applied`, or nothing for a run that keeps no average: within the block the module holds
+    the weights the run evaluates and saves."""
+    return ema.applied() if ema is not None else nullcontext()
+
+
 def ema_checkpointed(ema: WeightEMA | None) -> AbstractContextManager[dict]:
     """:meth:`WeightEMA.checkpointed`, or an empty ``extra`` for a run that keeps no average."""
     return ema.checkpointed() if ema is not None else nullcontext({})

@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import json
 import time
-from contextlib import nullcontext
 
 import hydra
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from mmada_rl.training import optimizer_step, resume_own_weights, start_run
+from mmada_rl.training import ema_applied, optimizer_step, resume_own_weights, start_run
 from utils import (PREFIX, evaluate, make_data, make_demo_buffer, make_ema, make_logger, make_loss, make_optim, make_policy,
                    resume, save)
 
@@ -43,7 +42,6 @@ def main(cfg: DictConfig) -> None:
     start, extra = resume(cfg, run_dir, policy, optimizer, scheduler, generators)
     ema = make_ema(cfg, policy)  # after resume: the average starts from the saved one
     resume_own_weights(policy, ema, extra)
-    averaged = ema.applied if ema is not None else nullcontext
     params = sum(p.numel() for p in policy.parameters())
     print(f"{PREFIX} {cfg.algo}: {buffer.metadata.num_episodes} demos, {len(buffer)} transitions; "
           f"{params / 1e6:.2f}M parameters; chunk {policy.chunk_size}x{policy.action_dim}"
@@ -61,7 +59,7 @@ def main(cfg: DictConfig) -> None:
         metrics = {f"train/{k}": v for k, v in scalars.items()}
         metrics["time/step_s"] = time.perf_counter() - t0
         if eval_every and int(cfg.eval.episodes) > 0 and done % eval_every == 0 and done < total:
-            with averaged():
+            with ema_applied(ema):
                 metrics.update(evaluate(cfg, policy))
         if done % int(cfg.logger.log_interval) == 0 or done == total or "eval/success_once" in metrics:
             for key, value in metrics.items():
@@ -75,7 +73,7 @@ def main(cfg: DictConfig) -> None:
 
     final = {"step": total}
     if total > start and int(cfg.eval.episodes) > 0:
-        with averaged():
+        with ema_applied(ema):
             final.update(evaluate(cfg, policy))
         for key, value in final.items():
             if key.startswith("eval/"):

@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 from mmada_rl.data import window_generators
 from mmada_rl.training import (
+    ema_applied,
     ema_checkpointed,
     optimizer_step,
     resume_own_weights,
@@ -71,11 +72,9 @@ def evaluate(cfg: DictConfig, model, step: int) -> dict:
 def evaluate_saved(cfg: DictConfig, model, ema, step: int) -> dict:
     """``eval/...`` of the weights the run saves (the moving average with ``ema.enabled``), and with
     ``ema.evaluate_raw`` ``eval_raw/...`` of the optimizer's own weights."""
-    if ema is None:
-        return evaluate(cfg, model, step)
-    with ema.applied():
+    with ema_applied(ema):
         out = evaluate(cfg, model, step)
-    if cfg.ema.evaluate_raw:
+    if ema is not None and cfg.ema.evaluate_raw:
         out.update({f"eval_raw/{key[len('eval/'):]}": value for key, value in evaluate(cfg, model, step).items()})
     return out
 
@@ -83,9 +82,7 @@ def evaluate_saved(cfg: DictConfig, model, ema, step: int) -> dict:
 def validate(model, ema, batches: list) -> dict:
     """``val/...`` scores of the weights the run saves (the moving average with ``ema.enabled``) on the
     held-out windows."""
-    if ema is None:
-        return validation_metrics(model, batches)
-    with ema.applied():
+    with ema_applied(ema):
         return validation_metrics(model, batches)
 
 
@@ -112,8 +109,9 @@ def main(cfg: DictConfig) -> None:
     ema = make_ema(cfg, model)  # after resume: a saved average is the loaded model
     if ckpt is not None:
         start = ckpt.step
-        resume_own_weights(model.denoiser, ema, ckpt.trainer_state.get("extra", {}))
-        history = list(ckpt.trainer_state.get("extra", {}).get("history", []))  # the rows logged up to the checkpoint
+        extra = ckpt.trainer_state.get("extra", {})
+        resume_own_weights(model.denoiser, ema, extra)
+        history = list(extra.get("history", []))  # the rows logged up to the checkpoint
         print(f"[pretrain] resumed from {ckpt.path} at step {start}")
     params = sum(p.numel() for p in model.denoiser.parameters())
     demos = ", ".join(f"{b.metadata.task}: {b.metadata.num_episodes} demos, {len(b)} transitions" for b in buffers)
