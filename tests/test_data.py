@@ -345,6 +345,16 @@ def test_interrupted_collection_is_loadable_and_resumes(tmp_path, sig):
     assert len(set(buf.metadata.seeds)) == total
 
 
+def test_resuming_past_the_allocated_storage_is_refused_before_collecting(tmp_path):
+    cfg = EnvConfig(task="PickCube-v1", obs_mode="state")
+    collect(tmp_path / "d", cfg, episodes=1, policy="scripted", progress=False)  # storage for 1 episode
+    with pytest.raises(ValueError, match="Collect into a new directory with --episodes 3"):
+        collect(tmp_path / "d", cfg, episodes=3, policy="scripted", progress=False)
+    meta = DemoBuffer.open(tmp_path / "d").metadata
+    assert meta.num_episodes == 1 and meta.attempts == 1  # nothing was attempted
+    assert collect(tmp_path / "d", cfg, episodes=1, policy="scripted", progress=False).attempts == 0  # same size: fine
+
+
 @pytest.mark.parametrize("task", ["PickCube-v1", "PushCube-v1", "PullCube-v1"])
 def test_scripted_experts_solve_their_tasks_in_pd_ee_delta_pose(tmp_path, task):
     res = collect(tmp_path / task, EnvConfig(task=task, obs_mode="state"), episodes=2, policy="scripted", progress=False)

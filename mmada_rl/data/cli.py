@@ -94,7 +94,8 @@ def add_parser(sub) -> None:
     )
     add_env_arguments(p)
     p.add_argument("--episodes", type=int, required=True, help="number of episodes the buffer should hold in the end.")
-    p.add_argument("--out", required=True, help="buffer directory (created, or resumed if it already holds one).")
+    p.add_argument("--out", required=True, help="buffer directory (created, or resumed if it already holds one; a buffer is "
+                   "allocated for the --episodes it was created with, so grow one by collecting anew with more).")
     p.add_argument("--policy", default="planner", choices=["planner", "scripted", "random"],
                    help="planner: ManiSkill's motion-planning solution converted to --control-mode; scripted: a state-based "
                    "expert (PickCube, PushCube, PullCube; pd_ee_delta_pose); random: uniform actions (default: %(default)s).")

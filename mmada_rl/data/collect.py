@@ -113,6 +113,15 @@ def collect(
         raise BufferMismatchError(f"{out} holds episodes recorded with {settings}; resume it with the same "
                                   "settings or collect into another directory.")
     missing = episodes - buffer.metadata.num_episodes
+    longest = cfg.episode_steps or 200
+    if missing > 0 and len(buffer) + missing * longest > buffer.metadata.capacity:
+        # a resumed buffer keeps the storage it was created with: say so now, not after minutes of collection
+        source.close()
+        raise ValueError(
+            f"{out} was allocated for {buffer.metadata.capacity} transitions and holds {len(buffer)} "
+            f"({buffer.metadata.num_episodes} episodes); {missing} more episodes of up to {longest} steps may not fit. "
+            f"Collect into a new directory with --episodes {episodes} (the same --seed records the same first episodes)."
+        )
     max_attempts = max_attempts if max_attempts is not None else 3 * max(missing, 0) + 10
     instruction = task_spec(cfg.task).instruction
     result = CollectResult(buffer, 0, 0, 0, 0, 0.0, {})
