@@ -105,7 +105,8 @@ def collect(
         action_noise=float(action_noise),
         next_seed=seed,
     )
-    buffer = DemoBuffer.open_or_create(out, meta, capacity=episodes * (cfg.episode_steps or 200))
+    longest = cfg.episode_steps or 200  # steps an episode may take: what the storage is allocated by
+    buffer = DemoBuffer.open_or_create(out, meta, capacity=episodes * longest)
     recorded = {k: getattr(buffer.metadata, k) for k in ("keep_after_success", "action_noise")}
     if recorded != {k: getattr(meta, k) for k in recorded}:
         source.close()
@@ -113,7 +114,6 @@ def collect(
         raise BufferMismatchError(f"{out} holds episodes recorded with {settings}; resume it with the same "
                                   "settings or collect into another directory.")
     missing = episodes - buffer.metadata.num_episodes
-    longest = cfg.episode_steps or 200
     if missing > 0 and len(buffer) + missing * longest > buffer.metadata.capacity:
         # a resumed buffer keeps the storage it was created with: say so now, not after minutes of collection
         source.close()
