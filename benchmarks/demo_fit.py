@@ -11,6 +11,10 @@ in), masks the target tokens (goal image + action chunk) at each fixed ratio of
 tokens. It also decodes each window's chunk greedily with the model's sampler
 (the N steps the policy runs) and reports its mean absolute error against the
 demonstrated chunk, in the environment's action units, per action dimension.
+``--decode READOUT:N`` (repeatable) decodes instead with each of the given
+action read-outs and step counts, e.g. ``--decode token:10 --decode mean:1``
+(``mean:1``: every action token's expected bin from one pass over the fully
+masked chunk, the conditional mean a regression policy predicts).
 A BC or Diffusion Policy run (``recipes/baselines/imitation.py``) gets the
 same decoded error on the same windows (its own chunk prediction), so the
 policy's fit can be set beside the baseline's at equal updates.
@@ -43,6 +47,7 @@ from common import RESULTS, markdown_table, save_figure, write_results  # noqa: 
 from mmada_rl.data import DemoBuffer  # noqa: E402
 from mmada_rl.evaluation import load_actor  # noqa: E402
 from mmada_rl.policy import MMaDAActor, MMaDAModel  # noqa: E402
+from mmada_rl.policy.model import ACTION_READOUTS  # noqa: E402
 from mmada_rl.training.validation import chunk_error, fixed_windows, masked_token_scores  # noqa: E402
 
 
@@ -53,6 +58,15 @@ def parse_run(text: str) -> tuple[Path, list[str]]:
     if not sep or not run or not names:
         raise argparse.ArgumentTypeError(f"expected RUN=TASK[,TASK...], got {text!r}.")
     return Path(run), names
+
+
+def parse_decode(text: str) -> tuple[str, int]:
+    """``READOUT:N`` -> (read-out, decoding steps N)."""
+    readout, sep, steps = text.partition(":")
+    if not sep or readout not in ACTION_READOUTS or not steps.isdigit() or int(steps) < 1:
+        raise argparse.ArgumentTypeError(f"expected READOUT:N with READOUT in {ACTION_READOUTS} and N >= 1, "
+                                         f"got {text!r}.")
+    return readout, int(steps)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,6 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=16, help="windows per minibatch (default: 16)")
     parser.add_argument("--decode-minibatches", type=int, default=4,
                         help="minibatches whose chunks are decoded greedily (default: 4; 0 skips decoding)")
+    parser.add_argument("--decode", type=parse_decode, action="append", default=None, metavar="READOUT:N",
+                        help="MMaDA-VLA runs: decode with this action read-out (token | mean) and N steps; "
+                             "repeatable, one row each (default: the policy's own)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="demo_fit", help="results file stem (default: demo_fit)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -97,10 +114,18 @@ def main(argv: list[str] | None = None) -> int:
             bar.update(len(args.ratios))
             if args.decode_minibatches:
                 batches = fixed_windows(demos, chunk_size, args.decode_minibatches, args.batch_size, args.seed)
-                mae = chunk_error(model, batches)
-                steps = model.sampler.config.num_steps if isinstance(model, MMaDAModel) else None
-                decoded.append({"run": str(run), "task": task, "num_denoise_steps": steps,
-                                "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
+                if not isinstance(model, MMaDAModel):  # a baseline decodes as it acts
+                    mae = chunk_error(model, batches)
+                    decoded.append({"run": str(run), "task": task, "num_denoise_steps": None, "action_readout": None,
+                                    "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
+                else:
+                    for readout, steps in args.decode or [(None, None)]:  # None: the policy's own
+                        with model.decoding(num_steps=steps, readout=readout):
+                            mae = chunk_error(model, batches)
+                            decoded.append({"run": str(run), "task": task,
+                                            "num_denoise_steps": model.sampler.config.num_steps,
+                                            "action_readout": model.action_readout,
+                                            "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
             bar.update()
     bar.close()
 
@@ -111,8 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     if decoded:
         table += ("\n\nPredicted chunks (MMaDA-VLA: greedily decoded, N steps; baselines: as they act) against the "
                   "demonstrated ones (mean absolute error, action units):\n\n")
-        table += markdown_table(["run", "task", "N", "all dims", "per dim"],
-                                [[d["run"], d["task"], d["num_denoise_steps"] or "-", f"{d['chunk_mae']:.4f}",
+        table += markdown_table(["run", "task", "read-out", "N", "all dims", "per dim"],
+                                [[d["run"], d["task"], d["action_readout"] or "-", d["num_denoise_steps"] or "-",
+                                  f"{d['chunk_mae']:.4f}",
                                   " ".join(f"{x:.4f}" for x in d["chunk_mae_per_dim"])] for d in decoded])
 
     import matplotlib
@@ -132,8 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     ax.legend(fontsize=7)
     save_figure(fig, args.out / f"{args.name}.png")
     payload = {"runs": {str(run): tasks for run, tasks in args.run}, "demos": args.demos, "minibatches": args.minibatches,
+               "decode": [f"{readout}:{steps}" for readout, steps in args.decode or []],
                "batch_size": args.batch_size, "seed": args.seed, "results": results, "decoded": decoded}
     command = "python benchmarks/demo_fit.py " + " ".join(f"--run {run}={','.join(tasks)}" for run, tasks in args.run)
+    command += "".join(f" --decode {readout}:{steps}" for readout, steps in args.decode or [])
     write_results(args.name, payload,
                   f"# How well each checkpoint fits the demonstrations\n\n`{command}`\n\n{args.minibatches} minibatches of "
                   f"{args.batch_size} windows per row; the same windows and masks for every run.\n\n{table}\n\n"

@@ -27,6 +27,7 @@ policy trained on them can be measured against the unseen evaluation states
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -44,7 +45,6 @@ from tqdm.auto import tqdm
 
 from mmada_rl.baselines import AGENT_CONFIG, POLICY_CONFIG, is_policy_dir, is_rl_agent_dir, load_policy, load_rl_actor
 from mmada_rl.data.metadata import BufferMetadata
-from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
 from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
@@ -335,16 +335,12 @@ def evaluate(
                          f"(got {sample_temperature!r} for a {type(actor).__name__}).")
     if action_readout is not None and mmada is None:
         raise ValueError(f"action_readout needs an MMaDA-VLA policy (got a {type(actor).__name__}).")
-    saved_sampler, penv = mmada.sampler if mmada is not None else None, None
-    saved_readout = mmada.action_readout if mmada is not None else None
+    saved_readout, penv = (mmada.action_readout if mmada is not None else None), None
+    restore = contextlib.ExitStack()  # gives the policy its own sampler and read-out back at the end
     try:
         if mmada is not None:
-            if action_readout is not None:
-                mmada.set_action_readout(action_readout)
-            overrides = {"num_steps": num_denoise_steps, "temperature": sample_temperature}
-            overrides = {k: v for k, v in overrides.items() if v is not None}
-            if overrides:
-                mmada.sampler = MaskedDiffusionSampler(SamplerConfig(**{**asdict(mmada.sampler.config), **overrides}))
+            restore.enter_context(mmada.decoding(num_steps=num_denoise_steps, temperature=sample_temperature,
+                                                 readout=action_readout))
             num_steps = mmada.sampler.config.num_steps
         else:
             if num_denoise_steps is not None:
@@ -377,8 +373,7 @@ def evaluate(
                 bar.set_postfix(success=f"{np.mean([r.success_once for r in results]):.2f}")
         seconds = time.perf_counter() - start
     finally:
-        if mmada is not None:
-            mmada.sampler, mmada.action_readout = saved_sampler, saved_readout
+        restore.close()
         if penv is not None:
             penv.env.close()
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import asdict
 
 import pytest
 import torch
@@ -10,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mmada_rl.diffusion.path import DecodingPath, path_log_prob
+from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig, make_env
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.keys import (
@@ -184,6 +186,32 @@ def test_mean_readout_executes_the_expected_bins_of_greedy_chunks_only(model, ob
     with pytest.raises(ValueError, match="VQActionTokenizer codes have no mean"):
         model.set_action_readout("mean")
     assert model.action_readout == "token"
+
+
+def test_decoding_switches_steps_and_readout_inside_the_block_only(model, observations):
+    """``MMaDAModel.decoding``: N and the read-out apply inside the block (a one-step mean read-out is each
+    action token's expected bin from the fully masked chunk); the policy's own come back after it, also
+    when the block raises, and a bad read-out changes nothing."""
+    torch.manual_seed(0)
+    bins = build_tiny_model(observations[IMAGE_KEY], observations[STATE_KEY], torch.rand(64, 7) * 2 - 1,
+                            observations[INSTRUCTION_KEY][0], action_tokens="bins")
+    batch, own = observations[:3], bins.sampler
+    assert own.config.num_steps > 1 and bins.action_readout == "token"
+    with bins.decoding(num_steps=1, readout="mean"):
+        assert bins.sampler.config.num_steps == 1 and bins.action_readout == "mean"
+        assert bins.sampler.config.remasking == own.config.remasking  # only what was asked changes
+        one_step_mean = bins.act(batch, greedy=True).chunk
+    assert bins.sampler is own and bins.action_readout == "token"
+    probs = MaskedDiffusionSampler(SamplerConfig(**{**asdict(own.config), "num_steps": 1})).sample(
+        bins.denoiser, bins.prompt(batch), greedy=True, action_probs=True).action_probs
+    torch.testing.assert_close(one_step_mean, bins.action_tokenizer.decode_mean(probs))
+    with pytest.raises(RuntimeError, match="inside"), bins.decoding(num_steps=2):
+        raise RuntimeError("inside")
+    assert bins.sampler is own
+    vq_sampler = model.sampler
+    with pytest.raises(ValueError, match="codes have no mean"), model.decoding(num_steps=1, readout="mean"):
+        pass
+    assert model.action_readout == "token" and model.sampler is vq_sampler
 
 
 def test_stored_path_log_prob_is_recomputed_exactly(model, observations):

@@ -306,6 +306,13 @@ def test_demo_fit_sets_the_baselines_chunks_beside_the_policys(toy_runs, toy_pre
     assert len(bc["chunk_mae_per_dim"]) == 7 and bc["chunk_mae"] > 0
     assert a["decoded"] == b["decoded"]  # the same windows, the same (deterministic) predictions
     assert f"| {toy_runs['bc']} | PickCube-v1 | - |" in (tmp_path / "a" / "demo_fit.md").read_text()
+    # --decode READOUT:N: one row per decoding of the policy; the baseline's row as before
+    assert bench.main([*args, "--decode", "token:1", "--decode", "token:3", "--out", str(tmp_path / "c")]) == 0
+    c = json.loads((tmp_path / "c" / "demo_fit.json").read_text())
+    assert c["decode"] == ["token:1", "token:3"] and c["decoded"][0] == bc
+    assert [(d["action_readout"], d["num_denoise_steps"]) for d in c["decoded"][1:]] == [("token", 1), ("token", 3)]
+    with pytest.raises(SystemExit):
+        bench.main([*args, "--decode", "median:1"])
 
 
 @pytest.mark.parametrize("algo", sorted(ALGOS))

@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import json
 import warnings
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Iterator, NamedTuple
 
 import torch
 from safetensors.torch import load_file, save_file
@@ -226,6 +227,26 @@ class MMaDAModel(nn.Module):
             raise ValueError(f"action_readout='mean' needs uniform-bin action tokens; this policy's "
                              f"{type(self.action_tokenizer).__name__} codes have no mean.")
         self.action_readout = readout
+
+    @contextmanager
+    def decoding(self, *, num_steps: int | None = None, temperature: float | None = None,
+                 readout: str | None = None) -> Iterator[MMaDAModel]:
+        """Decode with ``num_steps`` (N), sampling ``temperature`` and action ``readout`` inside the block
+        (None keeps the policy's own); the sampler and read-out are restored on exit, also on error.
+
+            >>> with model.decoding(num_steps=1, readout="mean"):  # doctest: +SKIP
+            ...     chunk = model.act(td, greedy=True).chunk
+        """
+        saved_sampler, saved_readout = self.sampler, self.action_readout
+        try:
+            if readout is not None:
+                self.set_action_readout(readout)
+            overrides = {k: v for k, v in {"num_steps": num_steps, "temperature": temperature}.items() if v is not None}
+            if overrides:
+                self.sampler = MaskedDiffusionSampler(SamplerConfig(**{**asdict(saved_sampler.config), **overrides}))
+            yield self
+        finally:
+            self.sampler, self.action_readout = saved_sampler, saved_readout
 
     def _proprio_index(self) -> torch.Tensor:
         """Which of the proprio tokenizer's tokens enter the sequence (all but ``proprio_drop_dims``)."""
