@@ -69,6 +69,15 @@ def parse_decode(text: str) -> tuple[str, int]:
     return readout, int(steps)
 
 
+def decoded_row(run: Path, task: str, model, batches) -> dict:
+    """The error of ``model``'s chunks on ``batches`` as it decodes now (an MMaDA policy: its N and read-out)."""
+    mae = chunk_error(model, batches)
+    mmada = isinstance(model, MMaDAModel)
+    return {"run": str(run), "task": task, "num_denoise_steps": model.sampler.config.num_steps if mmada else None,
+            "action_readout": model.action_readout if mmada else None,
+            "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=parse_run, action="append", required=True, metavar="RUN=TASK[,TASK...]",
@@ -115,17 +124,11 @@ def main(argv: list[str] | None = None) -> int:
             if args.decode_minibatches:
                 batches = fixed_windows(demos, chunk_size, args.decode_minibatches, args.batch_size, args.seed)
                 if not isinstance(model, MMaDAModel):  # a baseline decodes as it acts
-                    mae = chunk_error(model, batches)
-                    decoded.append({"run": str(run), "task": task, "num_denoise_steps": None, "action_readout": None,
-                                    "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
+                    decoded.append(decoded_row(run, task, model, batches))
                 else:
                     for readout, steps in args.decode or [(None, None)]:  # None: the policy's own
                         with model.decoding(num_steps=steps, readout=readout):
-                            mae = chunk_error(model, batches)
-                            decoded.append({"run": str(run), "task": task,
-                                            "num_denoise_steps": model.sampler.config.num_steps,
-                                            "action_readout": model.action_readout,
-                                            "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)})
+                            decoded.append(decoded_row(run, task, model, batches))
             bar.update()
     bar.close()
 

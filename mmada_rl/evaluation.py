@@ -335,13 +335,13 @@ def evaluate(
                          f"(got {sample_temperature!r} for a {type(actor).__name__}).")
     if action_readout is not None and mmada is None:
         raise ValueError(f"action_readout needs an MMaDA-VLA policy (got a {type(actor).__name__}).")
-    saved_readout, penv = (mmada.action_readout if mmada is not None else None), None
+    penv, readout = None, None  # readout: the MMaDA policy's action read-out in this evaluation
     restore = contextlib.ExitStack()  # gives the policy its own sampler and read-out back at the end
     try:
         if mmada is not None:
             restore.enter_context(mmada.decoding(num_steps=num_denoise_steps, temperature=sample_temperature,
                                                  readout=action_readout))
-            num_steps = mmada.sampler.config.num_steps
+            num_steps, readout = mmada.sampler.config.num_steps, mmada.action_readout
         else:
             if num_denoise_steps is not None:
                 actor = actor.get_new_version(num_denoise_steps=num_denoise_steps)
@@ -389,7 +389,7 @@ def evaluate(
         decode_ms_mean=float(latencies.mean()), decode_ms_p95=float(np.percentile(latencies, 95)),
         env_steps_per_second=sum(r.steps for r in results) / seconds,
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
-        action_readout=(action_readout or saved_readout) if mmada is not None else None,
+        action_readout=readout,
         checkpoint=str(model) if isinstance(model, (str, Path)) else None,
         demo_seeds=None if demo_seeds is None else str(demo_seeds),
     )  # fmt: skip
