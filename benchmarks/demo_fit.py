@@ -15,6 +15,13 @@ demonstrated chunk, in the environment's action units, per action dimension.
 action read-outs and step counts, e.g. ``--decode token:10 --decode mean:1``
 (``mean:1``: every action token's expected bin from one pass over the fully
 masked chunk, the conditional mean a regression policy predicts).
+``--swap image`` / ``--swap state`` (repeatable) decodes the same windows once
+more with that input of each window replaced by the next window's of its
+minibatch (another episode at another phase: another cube position and arm
+pose), the rest left as it is: the error's rise measures how much the
+prediction follows that input. A policy that predicts from the arm's state and
+ignores where the cube is seen fits the demonstrations with the image swapped
+almost as well as without.
 A BC or Diffusion Policy run (``recipes/baselines/imitation.py``) gets the
 same decoded error on the same windows (its own chunk prediction), so the
 policy's fit can be set beside the baseline's at equal updates.
@@ -45,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
 from mmada_rl.data import DemoBuffer  # noqa: E402
+from mmada_rl.keys import IMAGE_KEY, IMAGE_TOKENS_KEY, STATE_KEY  # noqa: E402
 from mmada_rl.evaluation import load_actor  # noqa: E402
 from mmada_rl.policy import MMaDAActor, MMaDAModel  # noqa: E402
 from mmada_rl.policy.model import ACTION_READOUTS  # noqa: E402
@@ -69,11 +77,32 @@ def parse_decode(text: str) -> tuple[str, int]:
     return readout, int(steps)
 
 
-def decoded_row(run: Path, task: str, model, batches) -> dict:
-    """The error of ``model``'s chunks on ``batches`` as it decodes now (an MMaDA policy: its N and read-out)."""
-    mae = chunk_error(model, batches)
+#: The inputs ``--swap`` replaces, and the keys that hold each (the image's tokens when a window carries them).
+SWAPS = {"image": (IMAGE_KEY, IMAGE_TOKENS_KEY), "state": (STATE_KEY,)}
+
+
+def swapped(batches, what: str | None):
+    """``batches`` with the ``what`` input of every window replaced by the next window's of its minibatch (rolled by
+    one); ``None``: ``batches`` as they are."""
+    if what is None:
+        return batches
+    out = []
+    for batch in batches:
+        batch = batch.clone()
+        for key in SWAPS[what]:
+            if key in batch.keys(include_nested=True):
+                batch.set(key, batch.get(key).roll(1, dims=0))
+        out.append(batch)
+    return out
+
+
+def decoded_row(run: Path, task: str, model, batches, swap: str | None = None) -> dict:
+    """The error of ``model``'s chunks on ``batches`` as it decodes now (an MMaDA policy: its N and read-out), with
+    the ``swap`` input of each window taken from another (:func:`swapped`)."""
+    mae = chunk_error(model, swapped(batches, swap))
     mmada = isinstance(model, MMaDAModel)
-    return {"run": str(run), "task": task, "num_denoise_steps": model.sampler.config.num_steps if mmada else None,
+    return {"run": str(run), "task": task, "swapped": swap,
+            "num_denoise_steps": model.sampler.config.num_steps if mmada else None,
             "action_readout": model.action_readout if mmada else None,
             "chunk_mae_per_dim": mae, "chunk_mae": sum(mae) / len(mae)}
 
@@ -93,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--decode", type=parse_decode, action="append", default=None, metavar="READOUT:N",
                         help="MMaDA-VLA runs: decode with this action read-out (token | mean) and N steps; "
                              "repeatable, one row each (default: the policy's own)")
+    parser.add_argument("--swap", choices=sorted(SWAPS), action="append", default=[],
+                        help="decode once more with this input of each window taken from another window of its "
+                             "minibatch; repeatable, one row each (default: none)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="demo_fit", help="results file stem (default: demo_fit)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -123,12 +155,13 @@ def main(argv: list[str] | None = None) -> int:
             bar.update(len(args.ratios))
             if args.decode_minibatches:
                 batches = fixed_windows(demos, chunk_size, args.decode_minibatches, args.batch_size, args.seed)
-                if not isinstance(model, MMaDAModel):  # a baseline decodes as it acts
-                    decoded.append(decoded_row(run, task, model, batches))
-                else:
+                for swap in [None, *args.swap]:
+                    if not isinstance(model, MMaDAModel):  # a baseline decodes as it acts
+                        decoded.append(decoded_row(run, task, model, batches, swap))
+                        continue
                     for readout, steps in args.decode or [(None, None)]:  # None: the policy's own
                         with model.decoding(num_steps=steps, readout=readout):
-                            decoded.append(decoded_row(run, task, model, batches))
+                            decoded.append(decoded_row(run, task, model, batches, swap))
             bar.update()
     bar.close()
 
@@ -139,8 +172,9 @@ def main(argv: list[str] | None = None) -> int:
     if decoded:
         table += ("\n\nPredicted chunks (MMaDA-VLA: greedily decoded, N steps; baselines: as they act) against the "
                   "demonstrated ones (mean absolute error, action units):\n\n")
-        table += markdown_table(["run", "task", "read-out", "N", "all dims", "per dim"],
-                                [[d["run"], d["task"], d["action_readout"] or "-", d["num_denoise_steps"] or "-",
+        table += markdown_table(["run", "task", "swapped input", "read-out", "N", "all dims", "per dim"],
+                                [[d["run"], d["task"], d["swapped"] or "-", d["action_readout"] or "-",
+                                  d["num_denoise_steps"] or "-",
                                   f"{d['chunk_mae']:.4f}",
                                   " ".join(f"{x:.4f}" for x in d["chunk_mae_per_dim"])] for d in decoded])
 
@@ -161,10 +195,11 @@ def main(argv: list[str] | None = None) -> int:
     ax.legend(fontsize=7)
     save_figure(fig, args.out / f"{args.name}.png")
     payload = {"runs": {str(run): tasks for run, tasks in args.run}, "demos": args.demos, "minibatches": args.minibatches,
-               "decode": [f"{readout}:{steps}" for readout, steps in args.decode or []],
+               "decode": [f"{readout}:{steps}" for readout, steps in args.decode or []], "swap": args.swap,
                "batch_size": args.batch_size, "seed": args.seed, "results": results, "decoded": decoded}
     command = "python benchmarks/demo_fit.py " + " ".join(f"--run {run}={','.join(tasks)}" for run, tasks in args.run)
     command += "".join(f" --decode {readout}:{steps}" for readout, steps in args.decode or [])
+    command += "".join(f" --swap {what}" for what in args.swap)
     write_results(args.name, payload,
                   f"# How well each checkpoint fits the demonstrations\n\n`{command}`\n\n{args.minibatches} minibatches of "
                   f"{args.batch_size} windows per row; the same windows and masks for every run.\n\n{table}\n\n"

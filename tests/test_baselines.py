@@ -313,6 +313,28 @@ def test_demo_fit_sets_the_baselines_chunks_beside_the_policys(toy_runs, toy_pre
     assert [(d["action_readout"], d["num_denoise_steps"]) for d in c["decoded"][1:]] == [("token", 1), ("token", 3)]
     with pytest.raises(SystemExit):
         bench.main([*args, "--decode", "median:1"])
+    # --swap image / state: one more row per swapped input and run, on the same windows
+    assert bench.main([*args, "--swap", "image", "--swap", "state", "--out", str(tmp_path / "d")]) == 0
+    d = json.loads((tmp_path / "d" / "demo_fit.json").read_text())
+    assert d["swap"] == ["image", "state"]
+    assert [(r["run"], r["swapped"]) for r in d["decoded"]] == [
+        (str(run), swap) for run in (toy_runs["bc"], toy_pretrain_run) for swap in (None, "image", "state")]
+    assert d["decoded"][0] == bc and d["decoded"][3] == ours  # unswapped: as before
+    assert all(r["chunk_mae"] != bc["chunk_mae"] for r in d["decoded"][1:3])  # BC reads both inputs
+    with pytest.raises(SystemExit):
+        bench.main([*args, "--swap", "instruction"])
+    # each window gets the next window's input of its minibatch, the other inputs untouched
+    from mmada_rl.keys import IMAGE_KEY, STATE_KEY
+    from mmada_rl.training.validation import fixed_windows
+
+    batch = fixed_windows(pick_demos, 3, 1, 4, seed=0)[0]
+    (image_swapped,) = bench.swapped([batch], "image")
+    assert torch.equal(image_swapped[IMAGE_KEY][1:], batch[IMAGE_KEY][:-1])
+    assert torch.equal(image_swapped[IMAGE_KEY][0], batch[IMAGE_KEY][-1])
+    assert torch.equal(image_swapped[STATE_KEY], batch[STATE_KEY])
+    (state_swapped,) = bench.swapped([batch], "state")
+    assert torch.equal(state_swapped[STATE_KEY], batch[STATE_KEY].roll(1, 0))
+    assert torch.equal(state_swapped[IMAGE_KEY], batch[IMAGE_KEY])
 
 
 @pytest.mark.parametrize("algo", sorted(ALGOS))

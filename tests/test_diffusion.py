@@ -88,6 +88,41 @@ def test_corrupt_condition_masking_and_schedule_validation():
         corrupt(clean, layout, kernel="gaussian")
 
 
+def test_proprio_dropout_corrupts_a_samples_whole_proprio_segment_or_none_of_it():
+    """``proprio_drop_prob``: each sample's proprio tokens are all corrupted or all clean, at about that rate; the
+    rest of the conditioning stays clean; the loss scores the dropped tokens as ``loss_condition``."""
+    vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16,
+                                               proprio_codebook_size=64))
+    layout = SequenceLayout(LayoutConfig(TEXT, IMG, 4, K, D_TOK, proprio_tokens=3), vocab)
+    g = torch.Generator().manual_seed(0)
+    clean = layout.assemble(torch.randint(0, 20, (200, TEXT), generator=g), torch.randint(0, 32, (200, IMG), generator=g),
+                            torch.randint(0, 32, (200, 4), generator=g), torch.randint(0, 16, (200, K, D_TOK), generator=g),
+                            proprio_ids=torch.randint(0, 64, (200, 3), generator=g))
+    proprio = layout.positions("proprio")
+    assert proprio.numel() == 3
+    out = corrupt(clean, layout, proprio_drop_prob=0.3, generator=torch.Generator().manual_seed(3))
+    dropped = out.corrupted[:, proprio]  # (B, P)
+    per_sample = dropped.all(1)
+    assert torch.equal(per_sample, dropped.any(1))  # all or none
+    assert 0.2 < per_sample.float().mean() < 0.4
+    other = layout.is_condition.clone()
+    other[proprio] = False
+    assert not out.corrupted[:, other].any()
+    assert bool((out.noisy_ids[per_sample][:, proprio] == layout.vocab.mask_id).all())
+    assert corrupt(clean, layout, proprio_drop_prob=1.0).corrupted[:, proprio].all()
+    with pytest.raises(ValueError, match="proprio_drop_prob"):
+        corrupt(clean, layout, proprio_drop_prob=1.5)
+    with pytest.raises(ValueError, match="proprio_drop_prob"):
+        MaskedDiffusionLoss(tiny(layout), proprio_drop_prob=-0.1)
+
+    loss_fn = MaskedDiffusionLoss(tiny(layout), proprio_drop_prob=1.0)
+    assert "loss_condition" in loss_fn.out_keys
+    td = TensorDict({SEQUENCE_KEY: clean[:4]}, batch_size=[4])
+    out = loss_fn(td)
+    assert torch.isfinite(out["loss_condition"]) and out["loss_condition"] > 0
+    assert "loss_condition" not in MaskedDiffusionLoss(tiny(layout)).out_keys
+
+
 def test_masked_counts():
     for kind in ("cosine", "linear"):
         for steps in (1, 4, 10, 30):

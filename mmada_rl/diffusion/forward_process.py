@@ -91,6 +91,7 @@ def corrupt(
     kernel: str | NoiseKernel = "absorbing",
     generator: torch.Generator | None = None,
     condition_mask_prob: float = 0.0,
+    proprio_drop_prob: float = 0.0,
 ) -> Corruption:
     """Corrupt the target tokens of clean sequences ``ids [B, L]``.
 
@@ -104,6 +105,12 @@ def corrupt(
             token (text, observation, proprio; never a separator) is also
             corrupted, for the multimodal pretraining objective. 0 keeps the
             conditioning clean.
+        proprio_drop_prob: probability with which a sample's whole proprio
+            segment is corrupted (state dropout): that sample's targets are
+            then predicted from the image and the instruction alone, so a
+            policy cannot fit every window by continuing the arm's motion from
+            its state and must read the scene from the image. Its proprio
+            tokens are scored like other corrupted conditioning. 0: off.
 
     Examples:
         >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
@@ -119,6 +126,8 @@ def corrupt(
         raise ValueError(f"ids: expected shape [B, {layout.length}], got {list(ids.shape)}.")
     if not 0.0 <= condition_mask_prob <= 1.0:
         raise ValueError(f"condition_mask_prob must lie in [0, 1], got {condition_mask_prob!r}.")
+    if not 0.0 <= proprio_drop_prob <= 1.0:
+        raise ValueError(f"proprio_drop_prob must lie in [0, 1], got {proprio_drop_prob!r}.")
     schedule = make_noise_schedule(schedule)
     kernel = make_kernel(kernel)
     batch, device = ids.shape[0], ids.device
@@ -137,6 +146,10 @@ def corrupt(
         content = (layout.is_condition & ~layout.is_separator).to(device)  # (L,)
         draw = torch.rand(ids.shape, generator=generator, device=device) < condition_mask_prob
         corrupted |= draw & content
+    proprio = layout.positions("proprio").to(device)
+    if proprio_drop_prob > 0 and proprio.numel():
+        drop = torch.rand(batch, generator=generator, device=device) < proprio_drop_prob  # (B,)
+        corrupted[:, proprio] |= drop[:, None]
 
     noise = kernel.noise_like(ids, layout, generator)
     noisy = torch.where(corrupted, noise, ids)

@@ -77,6 +77,9 @@ class MaskedDiffusionLoss(LossModule):
         goal_weight: weight of ``loss_goal`` (0 without goal tokens).
         condition_mask_prob: also corrupt this fraction of the conditioning
             tokens (multimodal pretraining objective), scored as ``loss_condition``.
+        proprio_drop_prob: corrupt a sample's whole proprio segment with this
+            probability (state dropout, :func:`~mmada_rl.diffusion.corrupt`),
+            scored as ``loss_condition``.
         condition_weight: weight of ``loss_condition``.
         corruptions_per_sample: corrupt each sample this many times, each at
             its own noise level, and score them all (a given corruption in the
@@ -155,6 +158,7 @@ class MaskedDiffusionLoss(LossModule):
         goal_weight: float = 1.0,
         condition_mask_prob: float = 0.0,
         condition_weight: float = 1.0,
+        proprio_drop_prob: float = 0.0,
         corruptions_per_sample: int = 1,
         cache_condition: bool = True,
         action_label_sigma: float = 0.0,
@@ -167,6 +171,8 @@ class MaskedDiffusionLoss(LossModule):
             raise ValueError(f"corruptions_per_sample must be a positive integer, got {corruptions_per_sample!r}.")
         if not 0.0 <= condition_mask_prob <= 1.0:
             raise ValueError(f"condition_mask_prob must lie in [0, 1], got {condition_mask_prob!r}.")
+        if not 0.0 <= proprio_drop_prob <= 1.0:
+            raise ValueError(f"proprio_drop_prob must lie in [0, 1], got {proprio_drop_prob!r}.")
         super().__init__()
         if not isinstance(denoiser, TensorDictModule):
             denoiser = make_denoiser_module(denoiser)
@@ -179,6 +185,7 @@ class MaskedDiffusionLoss(LossModule):
         self.goal_weight = float(goal_weight)
         self.condition_mask_prob = float(condition_mask_prob)
         self.condition_weight = float(condition_weight)
+        self.proprio_drop_prob = float(proprio_drop_prob)
         self.corruptions_per_sample = int(corruptions_per_sample)
         self.cache_condition = bool(cache_condition)
         self.action_range = self.layout.vocab.range_of("action")
@@ -207,10 +214,15 @@ class MaskedDiffusionLoss(LossModule):
     @property
     def out_keys(self) -> list[str]:
         keys = ["loss_action", "loss_goal"]
-        if self.condition_mask_prob > 0:
+        if self.corrupts_condition:
             keys.append("loss_condition")
         keys += ["action_accuracy"] + (["goal_accuracy"] if self.layout.has_goal else [])
         return keys + ["noise_level", "num_scored"]
+
+    @property
+    def corrupts_condition(self) -> bool:
+        """Whether the forward process also corrupts conditioning tokens (then scored as ``loss_condition``)."""
+        return self.condition_mask_prob > 0 or self.proprio_drop_prob > 0
 
     # -- forward process -----------------------------------------------------
     def corrupt(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> TensorDictBase:
@@ -218,7 +230,8 @@ class MaskedDiffusionLoss(LossModule):
         clean = tensordict.get(self.tensor_keys.sequence)
         flat = clean.reshape(-1, clean.shape[-1])
         out = corrupt(flat, self.layout, self.schedule, self.kernel,
-                      generator if generator is not None else self.generator, self.condition_mask_prob)
+                      generator if generator is not None else self.generator, self.condition_mask_prob,
+                      self.proprio_drop_prob)
         tensordict.set(self.tensor_keys.noisy_sequence, out.noisy_ids.reshape(clean.shape))
         tensordict.set(self.tensor_keys.corrupted, out.corrupted.reshape(clean.shape))
         tensordict.set(self.tensor_keys.noise_level, out.noise_level.reshape(clean.shape[:-1]))
@@ -235,7 +248,7 @@ class MaskedDiffusionLoss(LossModule):
 
     def _can_cache(self, net, noisy: torch.Tensor, clean: torch.Tensor) -> bool:
         """Whether the conditioning may be computed once per sample: a block-causal denoiser, and a corruption
-        that left the conditioning clean (``condition_mask_prob = 0``)."""
+        that left the conditioning clean (``condition_mask_prob = 0``, no proprio dropped)."""
         if not (self.cache_condition and getattr(net, "supports_condition_cache", False)):
             return False
         condition = net.condition_positions
@@ -264,7 +277,8 @@ class MaskedDiffusionLoss(LossModule):
             noise_level = tensordict.get(keys.noise_level).reshape(batch)
         else:
             noisy, corrupted, noise_level = corrupt(
-                rows_clean, layout, self.schedule, self.kernel, self.generator, self.condition_mask_prob
+                rows_clean, layout, self.schedule, self.kernel, self.generator, self.condition_mask_prob,
+                self.proprio_drop_prob,
             )
         visual = rows_visual = None
         if self.cross_attention:
@@ -316,7 +330,7 @@ class MaskedDiffusionLoss(LossModule):
 
         out = {}
         groups = {"action": segment == ACTION_SEGMENT, "goal": segment == GOAL_SEGMENT}
-        if self.condition_mask_prob > 0:
+        if self.corrupts_condition:
             groups["condition"] = (segment != ACTION_SEGMENT) & (segment != GOAL_SEGMENT)
         weights = {"action": self.action_weight, "goal": self.goal_weight, "condition": self.condition_weight}
         for name, select in groups.items():

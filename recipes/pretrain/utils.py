@@ -123,6 +123,7 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     return MaskedDiffusionLoss(
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
+        proprio_drop_prob=float(l.proprio_drop_prob),
         corruptions_per_sample=int(l.corruptions_per_sample), action_label_sigma=sigma,
     )
 
