@@ -45,6 +45,18 @@ def make_batch(layout, batch=8, seed=0):
     return layout.assemble(text, obs if layout.config.obs_tokens else None, goal, actions)
 
 
+def proprio_layout_and_batch(batch: int):
+    """A layout with 3 proprio tokens (64 bins) and ``batch`` random clean sequences of it."""
+    vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16,
+                                               proprio_codebook_size=64))
+    layout = SequenceLayout(LayoutConfig(TEXT, IMG, 4, K, D_TOK, proprio_tokens=3), vocab)
+    g = torch.Generator().manual_seed(0)
+    ids = layout.assemble(torch.randint(0, 20, (batch, TEXT), generator=g), torch.randint(0, 32, (batch, IMG), generator=g),
+                          torch.randint(0, 32, (batch, 4), generator=g), torch.randint(0, 16, (batch, K, D_TOK), generator=g),
+                          proprio_ids=torch.randint(0, 64, (batch, 3), generator=g))
+    return layout, ids
+
+
 def tiny(layout, **overrides):
     torch.manual_seed(0)
     return MaskedDiffusionDenoiser(DenoiserConfig.preset("tiny", **overrides), layout)
@@ -91,13 +103,7 @@ def test_corrupt_condition_masking_and_schedule_validation():
 def test_proprio_dropout_corrupts_a_samples_whole_proprio_segment_or_none_of_it():
     """``proprio_drop_prob``: each sample's proprio tokens are all corrupted or all clean, at about that rate; the
     rest of the conditioning stays clean; the loss scores the dropped tokens as ``loss_condition``."""
-    vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16,
-                                               proprio_codebook_size=64))
-    layout = SequenceLayout(LayoutConfig(TEXT, IMG, 4, K, D_TOK, proprio_tokens=3), vocab)
-    g = torch.Generator().manual_seed(0)
-    clean = layout.assemble(torch.randint(0, 20, (200, TEXT), generator=g), torch.randint(0, 32, (200, IMG), generator=g),
-                            torch.randint(0, 32, (200, 4), generator=g), torch.randint(0, 16, (200, K, D_TOK), generator=g),
-                            proprio_ids=torch.randint(0, 64, (200, 3), generator=g))
+    layout, clean = proprio_layout_and_batch(200)
     proprio = layout.positions("proprio")
     assert proprio.numel() == 3
     out = corrupt(clean, layout, proprio_drop_prob=0.3, generator=torch.Generator().manual_seed(3))
@@ -206,13 +212,7 @@ def test_keypoint_tokens_are_the_expected_positions_of_learned_maps():
 
 
 def test_proprio_value_embedding_reads_state_bins_as_ordered_values():
-    vocab = UnifiedVocabulary(VocabularyConfig(text_vocab_size=20, image_codebook_size=32, action_codebook_size=16,
-                                               proprio_codebook_size=64))
-    layout = SequenceLayout(LayoutConfig(TEXT, IMG, 4, K, D_TOK, proprio_tokens=3), vocab)
-    g = torch.Generator().manual_seed(0)
-    ids = layout.assemble(torch.randint(0, 20, (2, TEXT), generator=g), torch.randint(0, 32, (2, IMG), generator=g),
-                          torch.randint(0, 32, (2, 4), generator=g), torch.randint(0, 16, (2, K, D_TOK), generator=g),
-                          proprio_ids=torch.randint(0, 64, (2, 3), generator=g))
+    layout, ids = proprio_layout_and_batch(2)
     at_proprio = layout.segment_ids == SEGMENTS.index("proprio")
     plain, valued = tiny(layout).eval(), tiny(layout, proprio_value_embedding=True).eval()
     missing, unexpected = valued.load_state_dict(plain.state_dict(), strict=False)  # the same weights elsewhere
@@ -226,13 +226,13 @@ def test_proprio_value_embedding_reads_state_bins_as_ordered_values():
     assert bool((dist[[1, 4, 16, 63]].diff() > 0).all())
     # a masked proprio token carries no value
     masked = ids.clone()
-    masked[:, at_proprio] = vocab.mask_id
+    masked[:, at_proprio] = layout.vocab.mask_id
     assert bool(((valued._embed(masked) - plain._embed(masked)) == 0).all())
     # the condition cache and the full pass agree with the value embedding too
     net = tiny(layout, proprio_value_embedding=True, attention="block_causal").eval()
     tgt = layout.target_positions
     noisy = ids.clone()
-    noisy[:, tgt] = vocab.mask_id
+    noisy[:, tgt] = layout.vocab.mask_id
     full = net(noisy, torch.ones(2))[:, tgt]
     cached = net(noisy, torch.ones(2), cache=net.cache_condition(ids))
     finite = torch.isfinite(full)
