@@ -20,6 +20,7 @@ __all__ = [
     "Corruption",
     "NoiseKernel",
     "UniformKernel",
+    "check_probability",
     "corrupt",
     "make_kernel",
 ]
@@ -84,6 +85,12 @@ class Corruption(NamedTuple):
     noise_level: torch.Tensor
 
 
+def check_probability(name: str, value: float) -> None:
+    """Raise a ``ValueError`` naming ``name`` unless ``value`` lies in ``[0, 1]``."""
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must lie in [0, 1], got {value!r}.")
+
+
 def corrupt(
     ids: torch.Tensor,
     layout: SequenceLayout,
@@ -124,10 +131,8 @@ def corrupt(
     """
     if ids.ndim != 2 or ids.shape[1] != layout.length:
         raise ValueError(f"ids: expected shape [B, {layout.length}], got {list(ids.shape)}.")
-    if not 0.0 <= condition_mask_prob <= 1.0:
-        raise ValueError(f"condition_mask_prob must lie in [0, 1], got {condition_mask_prob!r}.")
-    if not 0.0 <= proprio_drop_prob <= 1.0:
-        raise ValueError(f"proprio_drop_prob must lie in [0, 1], got {proprio_drop_prob!r}.")
+    check_probability("condition_mask_prob", condition_mask_prob)
+    check_probability("proprio_drop_prob", proprio_drop_prob)
     schedule = make_noise_schedule(schedule)
     kernel = make_kernel(kernel)
     batch, device = ids.shape[0], ids.device
@@ -146,10 +151,9 @@ def corrupt(
         content = (layout.is_condition & ~layout.is_separator).to(device)  # (L,)
         draw = torch.rand(ids.shape, generator=generator, device=device) < condition_mask_prob
         corrupted |= draw & content
-    proprio = layout.positions("proprio").to(device)
-    if proprio_drop_prob > 0 and proprio.numel():
+    if proprio_drop_prob > 0 and layout.config.proprio_tokens:
         drop = torch.rand(batch, generator=generator, device=device) < proprio_drop_prob  # (B,)
-        corrupted[:, proprio] |= drop[:, None]
+        corrupted[:, layout.positions("proprio").to(device)] |= drop[:, None]
 
     noise = kernel.noise_like(ids, layout, generator)
     noisy = torch.where(corrupted, noise, ids)

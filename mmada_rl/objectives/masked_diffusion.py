@@ -13,7 +13,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
 from mmada_rl.diffusion.denoiser import MaskedDiffusionDenoiser, make_denoiser_module
-from mmada_rl.diffusion.forward_process import NoiseKernel, corrupt, make_kernel
+from mmada_rl.diffusion.forward_process import NoiseKernel, check_probability, corrupt, make_kernel
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY, VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.schedules import NoiseSchedule, make_noise_schedule
 from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
@@ -169,10 +169,8 @@ class MaskedDiffusionLoss(LossModule):
                 raise ValueError(f"{name} must be >= 0, got {value!r}.")
         if int(corruptions_per_sample) != corruptions_per_sample or corruptions_per_sample < 1:
             raise ValueError(f"corruptions_per_sample must be a positive integer, got {corruptions_per_sample!r}.")
-        if not 0.0 <= condition_mask_prob <= 1.0:
-            raise ValueError(f"condition_mask_prob must lie in [0, 1], got {condition_mask_prob!r}.")
-        if not 0.0 <= proprio_drop_prob <= 1.0:
-            raise ValueError(f"proprio_drop_prob must lie in [0, 1], got {proprio_drop_prob!r}.")
+        check_probability("condition_mask_prob", condition_mask_prob)
+        check_probability("proprio_drop_prob", proprio_drop_prob)
         super().__init__()
         if not isinstance(denoiser, TensorDictModule):
             denoiser = make_denoiser_module(denoiser)
