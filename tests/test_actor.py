@@ -143,6 +143,11 @@ def test_dropped_proprio_dims_leave_the_sequence(model, observations, tmp_path):
     assert MMaDAActor(lean)(obs)[ACTION_CHUNK_KEY].shape == (2, CHUNK, 7)
     reloaded = MMaDAModel.load(lean.save(tmp_path / "lean"))
     assert reloaded.config.proprio_drop_dims == velocities and torch.equal(reloaded.prompt(obs), lean.prompt(obs))
+    # where state dims sit among the 20 tokens read (0..8, then 18..28): PickCube-v1's goal position is last
+    assert lean.proprio_segment_index([26, 27, 28]).tolist() == [17, 18, 19]
+    assert model.proprio_segment_index([26, 27, 28]).tolist() == [26, 27, 28]
+    with pytest.raises(ValueError, match=r"state dimensions \[9\] are not in the sequence"):
+        lean.proprio_segment_index([9, 26])
     with pytest.raises(ValueError, match=r"must name some, not all, of the state's dimensions 0..28"):
         MMaDAModel(MMaDAConfig(denoiser="tiny", proprio_drop_dims=[29]), tokenizers)
     with pytest.raises(ValueError, match="needs use_proprio=True"):

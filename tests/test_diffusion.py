@@ -121,6 +121,18 @@ def test_proprio_dropout_corrupts_a_samples_whole_proprio_segment_or_none_of_it(
     with pytest.raises(ValueError, match="proprio_drop_prob"):
         MaskedDiffusionLoss(tiny(layout), proprio_drop_prob=-0.1)
 
+    # proprio_drop_index: only those tokens of the segment drop (the goal position stays readable), still together
+    some = corrupt(clean, layout, proprio_drop_prob=0.3, proprio_drop_index=torch.tensor([0, 2]),
+                   generator=torch.Generator().manual_seed(3))
+    assert torch.equal(some.corrupted[:, proprio[[0, 2]]], dropped[:, [0, 2]])  # the same draws, fewer tokens
+    assert not some.corrupted[:, proprio[1]].any()
+    for bad in ([3], [0, 0], []):
+        with pytest.raises(ValueError, match="proprio_drop_index"):
+            MaskedDiffusionLoss(tiny(layout), proprio_drop_prob=0.3, proprio_drop_index=bad)
+    kept = MaskedDiffusionLoss(tiny(layout), proprio_drop_prob=1.0, proprio_drop_index=[1])
+    scored = kept.corrupt(TensorDict({SEQUENCE_KEY: clean[:8]}, batch_size=[8]))
+    assert scored[CORRUPTED_KEY][:, proprio].tolist() == [[False, True, False]] * 8
+
     loss_fn = MaskedDiffusionLoss(tiny(layout), proprio_drop_prob=1.0)
     assert "loss_condition" in loss_fn.out_keys
     td = TensorDict({SEQUENCE_KEY: clean[:4]}, batch_size=[4])

@@ -136,6 +136,29 @@ def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
     assert saved["config"]["action_readout"] == "mean"  # the saved policy reads its greedy chunks out by their mean
 
 
+def test_state_dropout_can_keep_the_goal_position_readable(toy_run):
+    """``loss.proprio_drop_keep_dims``: state dropout masks every proprio token but those of the named state
+    dimensions (PickCube-v1's goal position, which the camera does not show); misuse fails with a clear error."""
+    from omegaconf import OmegaConf
+
+    from mmada_rl.policy import MMaDAModel
+
+    utils = load_script("recipes/pretrain/utils.py", "pretrain_utils")
+    cfg = OmegaConf.load(REPO / "recipes" / "pretrain" / "config" / "toy.yaml")
+    model = MMaDAModel.load(latest_checkpoint(toy_run) / "model")
+    assert model.layout.config.proprio_tokens == 29
+    cfg.loss.proprio_drop_prob = 0.3
+    assert utils.make_loss(cfg, model).proprio_drop_index is None  # the whole segment by default
+    cfg.loss.proprio_drop_keep_dims = [26, 27, 28]
+    assert utils.make_loss(cfg, model).proprio_drop_index.tolist() == list(range(26))
+    cfg.loss.proprio_drop_keep_dims = list(range(29))
+    with pytest.raises(ValueError, match="would mask nothing"):
+        utils.make_loss(cfg, model)
+    cfg.loss.proprio_drop_keep_dims, cfg.loss.proprio_drop_prob = [26], 0.0
+    with pytest.raises(ValueError, match="it is off"):
+        utils.make_loss(cfg, model)
+
+
 def test_random_shift_option_shifts_the_recipes_training_windows(pick_demos):
     """``replay_buffer.random_shift``: the recipe's windows are the plain ones, images shifted
     (how: tests/test_data.py, one offset per window for the observation and its goal frame)."""

@@ -99,6 +99,7 @@ def corrupt(
     generator: torch.Generator | None = None,
     condition_mask_prob: float = 0.0,
     proprio_drop_prob: float = 0.0,
+    proprio_drop_index: torch.Tensor | None = None,
 ) -> Corruption:
     """Corrupt the target tokens of clean sequences ``ids [B, L]``.
 
@@ -118,6 +119,9 @@ def corrupt(
             policy cannot fit every window by continuing the arm's motion from
             its state and must read the scene from the image. Its proprio
             tokens are scored like other corrupted conditioning. 0: off.
+        proprio_drop_index: which tokens of the proprio segment state dropout
+            masks (indices into the segment, e.g. the arm's state but not the
+            goal position, which the image does not show); None: all of them.
 
     Examples:
         >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
@@ -153,7 +157,10 @@ def corrupt(
         corrupted |= draw & content
     if proprio_drop_prob > 0 and layout.config.proprio_tokens:
         drop = torch.rand(batch, generator=generator, device=device) < proprio_drop_prob  # (B,)
-        corrupted[:, layout.positions("proprio").to(device)] |= drop[:, None]
+        proprio = layout.positions("proprio")
+        if proprio_drop_index is not None:
+            proprio = proprio[proprio_drop_index.to(proprio.device)]
+        corrupted[:, proprio.to(device)] |= drop[:, None]
 
     noise = kernel.noise_like(ids, layout, generator)
     noisy = torch.where(corrupted, noise, ids)

@@ -1,6 +1,7 @@
 """Masked-diffusion denoising loss (the pretraining / imitation objective)."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -80,6 +81,9 @@ class MaskedDiffusionLoss(LossModule):
         proprio_drop_prob: corrupt a sample's whole proprio segment with this
             probability (state dropout, :func:`~mmada_rl.diffusion.corrupt`),
             scored as ``loss_condition``.
+        proprio_drop_index: the tokens of the proprio segment state dropout
+            masks (indices into the segment, e.g. from
+            :meth:`~mmada_rl.policy.MMaDAModel.proprio_segment_index`); None: all.
         condition_weight: weight of ``loss_condition``.
         corruptions_per_sample: corrupt each sample this many times, each at
             its own noise level, and score them all (a given corruption in the
@@ -159,6 +163,7 @@ class MaskedDiffusionLoss(LossModule):
         condition_mask_prob: float = 0.0,
         condition_weight: float = 1.0,
         proprio_drop_prob: float = 0.0,
+        proprio_drop_index: Sequence[int] | torch.Tensor | None = None,
         corruptions_per_sample: int = 1,
         cache_condition: bool = True,
         action_label_sigma: float = 0.0,
@@ -184,6 +189,7 @@ class MaskedDiffusionLoss(LossModule):
         self.condition_mask_prob = float(condition_mask_prob)
         self.condition_weight = float(condition_weight)
         self.proprio_drop_prob = float(proprio_drop_prob)
+        self.proprio_drop_index = self._check_proprio_drop_index(proprio_drop_index)
         self.corruptions_per_sample = int(corruptions_per_sample)
         self.cache_condition = bool(cache_condition)
         self.action_range = self.layout.vocab.range_of("action")
@@ -198,6 +204,19 @@ class MaskedDiffusionLoss(LossModule):
         self._target_index[self.layout.target_positions] = torch.arange(self.layout.num_targets)
         #: Optional RNG of the forward process (None: torch's global RNG).
         self.generator: torch.Generator | None = None
+
+    def _check_proprio_drop_index(self, index) -> torch.Tensor | None:
+        """``proprio_drop_index`` as a long tensor, after checking it names distinct proprio tokens."""
+        if index is None:
+            return None
+        index = torch.as_tensor(index, dtype=torch.long).flatten()
+        size = self.layout.config.proprio_tokens
+        if not size:
+            raise ValueError("proprio_drop_index needs proprio tokens in the sequence, but the layout has none.")
+        if index.numel() == 0 or index.unique().numel() != index.numel() or not ((index >= 0) & (index < size)).all():
+            raise ValueError(f"proprio_drop_index={index.tolist()} must name distinct tokens of the proprio segment, "
+                             f"0..{size - 1}.")
+        return index
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -229,7 +248,7 @@ class MaskedDiffusionLoss(LossModule):
         flat = clean.reshape(-1, clean.shape[-1])
         out = corrupt(flat, self.layout, self.schedule, self.kernel,
                       generator if generator is not None else self.generator, self.condition_mask_prob,
-                      self.proprio_drop_prob)
+                      self.proprio_drop_prob, self.proprio_drop_index)
         tensordict.set(self.tensor_keys.noisy_sequence, out.noisy_ids.reshape(clean.shape))
         tensordict.set(self.tensor_keys.corrupted, out.corrupted.reshape(clean.shape))
         tensordict.set(self.tensor_keys.noise_level, out.noise_level.reshape(clean.shape[:-1]))
@@ -276,7 +295,7 @@ class MaskedDiffusionLoss(LossModule):
         else:
             noisy, corrupted, noise_level = corrupt(
                 rows_clean, layout, self.schedule, self.kernel, self.generator, self.condition_mask_prob,
-                self.proprio_drop_prob,
+                self.proprio_drop_prob, self.proprio_drop_index,
             )
         visual = rows_visual = None
         if self.cross_attention:

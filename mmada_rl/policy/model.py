@@ -261,6 +261,24 @@ class MMaDAModel(nn.Module):
                              f"tokenizer writes {tok.tokens_per_action} tokens for {dims} dimensions.")
         return torch.tensor(kept_state_dims(drop, dims, "proprio_drop_dims"), dtype=torch.long)
 
+    def proprio_segment_index(self, dims) -> torch.Tensor:
+        """Where the state dimensions ``dims`` sit in the sequence's proprio segment (one token each).
+
+        Raises:
+            ValueError: without one proprio token per state dimension, or if a
+                dimension is outside the state or left out (``proprio_drop_dims``).
+        """
+        tok = self.proprio_tokenizer
+        if tok is None or tok.tokens_per_action != tok.config.action_dim:
+            raise ValueError("state dimensions map onto proprio tokens only with one proprio token per dimension "
+                             "(model.use_proprio and a per-dimension proprio tokenizer).")
+        read = self.proprio_index.tolist()
+        missing = [int(d) for d in dims if int(d) not in read]
+        if missing:
+            raise ValueError(f"state dimensions {missing} are not in the sequence: it reads {read} "
+                             f"(of 0..{tok.config.action_dim - 1}, proprio_drop_dims={self.config.proprio_drop_dims}).")
+        return torch.tensor([read.index(int(d)) for d in dims], dtype=torch.long)
+
     def tokenizers(self) -> list[nn.Module]:
         return [t for t in (self.text_tokenizer, self.image_tokenizer, self.action_tokenizer, self.proprio_tokenizer) if t is not None]
 

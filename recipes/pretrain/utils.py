@@ -123,9 +123,25 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     return MaskedDiffusionLoss(
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
-        proprio_drop_prob=float(l.proprio_drop_prob),
+        proprio_drop_prob=float(l.proprio_drop_prob), proprio_drop_index=proprio_drop_index(cfg, model),
         corruptions_per_sample=int(l.corruptions_per_sample), action_label_sigma=sigma,
     )
+
+
+def proprio_drop_index(cfg: DictConfig, model: MMaDAModel):
+    """The proprio tokens state dropout masks: all but those of ``loss.proprio_drop_keep_dims`` (None: all)."""
+    keep = [int(d) for d in cfg.loss.get("proprio_drop_keep_dims", None) or []]
+    if not keep:
+        return None
+    if not float(cfg.loss.proprio_drop_prob) > 0:
+        raise ValueError(f"loss.proprio_drop_keep_dims={keep} names the state dropout keeps, but it is off "
+                         "(loss.proprio_drop_prob=0).")
+    keep_at = set(model.proprio_segment_index(keep).tolist())
+    dropped = [i for i in range(len(model.proprio_index)) if i not in keep_at]
+    if not dropped:
+        raise ValueError(f"loss.proprio_drop_keep_dims={keep} keeps every state dimension in the sequence: "
+                         "state dropout would mask nothing.")
+    return dropped
 
 
 def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
