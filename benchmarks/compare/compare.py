@@ -81,6 +81,9 @@ METHODS = {
                   ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo"], True),
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
                         _PPO_GROUP, True),
+    "mmada_ppo_group_demos": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, the "
+                              "demonstrations' denoising loss in every minibatch (ours; every denoising step replayed, "
+                              "for one-step policies)", "rgb+proprio", [*_PPO_GROUP, "loss.ppo.demo_coef=1.0"], True),
     "mmada_ppo_group_2steps": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 denoising "
                                "steps replayed per update (ours)", "rgb+proprio", _PPO_GROUP_2STEPS, True),
     "mmada_ppo_group_2steps_demos": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, 2 of 10 "
