@@ -128,7 +128,7 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     )
 
 
-def proprio_drop_index(cfg: DictConfig, model: MMaDAModel):
+def proprio_drop_index(cfg: DictConfig, model: MMaDAModel) -> list[int] | None:
     """The proprio tokens state dropout masks: all but those of ``loss.proprio_drop_keep_dims`` (None: all)."""
     keep = [int(d) for d in cfg.loss.get("proprio_drop_keep_dims", None) or []]
     if not keep:
