@@ -256,10 +256,17 @@ class MMaDAModel(nn.Module):
         drop, dims = self.config.proprio_drop_dims, tok.config.action_dim
         if not drop:
             return torch.arange(tok.tokens_per_action)  # every token, whatever the tokenizer
-        if tok.tokens_per_action != dims:
-            raise ValueError(f"proprio_drop_dims needs one proprio token per state dimension, but the proprio "
-                             f"tokenizer writes {tok.tokens_per_action} tokens for {dims} dimensions.")
+        self._check_one_token_per_state_dim("proprio_drop_dims")
         return torch.tensor(kept_state_dims(drop, dims, "proprio_drop_dims"), dtype=torch.long)
+
+    def _check_one_token_per_state_dim(self, what: str) -> None:
+        """Raise unless the proprio tokenizer writes one token per state dimension (``what`` maps dims onto tokens)."""
+        tok = self.proprio_tokenizer
+        if tok is None:
+            raise ValueError(f"{what} needs proprio tokens in the sequence (model.use_proprio=True).")
+        if tok.tokens_per_action != tok.config.action_dim:
+            raise ValueError(f"{what} needs one proprio token per state dimension, but the proprio "
+                             f"tokenizer writes {tok.tokens_per_action} tokens for {tok.config.action_dim} dimensions.")
 
     def proprio_segment_index(self, dims) -> torch.Tensor:
         """Where the state dimensions ``dims`` sit in the sequence's proprio segment (one token each).
@@ -268,15 +275,13 @@ class MMaDAModel(nn.Module):
             ValueError: without one proprio token per state dimension, or if a
                 dimension is outside the state or left out (``proprio_drop_dims``).
         """
-        tok = self.proprio_tokenizer
-        if tok is None or tok.tokens_per_action != tok.config.action_dim:
-            raise ValueError("state dimensions map onto proprio tokens only with one proprio token per dimension "
-                             "(model.use_proprio and a per-dimension proprio tokenizer).")
+        self._check_one_token_per_state_dim("mapping state dimensions onto proprio tokens")
         read = self.proprio_index.tolist()
         missing = [int(d) for d in dims if int(d) not in read]
         if missing:
-            raise ValueError(f"state dimensions {missing} are not in the sequence: it reads {read} "
-                             f"(of 0..{tok.config.action_dim - 1}, proprio_drop_dims={self.config.proprio_drop_dims}).")
+            raise ValueError(f"state dimensions {missing} are not in the sequence: it reads {read} (of "
+                             f"0..{self.proprio_tokenizer.config.action_dim - 1}, "
+                             f"proprio_drop_dims={self.config.proprio_drop_dims}).")
         return torch.tensor([read.index(int(d)) for d in dims], dtype=torch.long)
 
     def tokenizers(self) -> list[nn.Module]:
