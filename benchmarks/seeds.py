@@ -21,6 +21,7 @@ import argparse
 import json
 import statistics
 import sys
+import textwrap
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -110,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(min(12.0, max(4.0, 1.6 * len(groups) + 1.5)), 4.2))
+    # long labels wrapped under their group rather than rotated off the figure
+    fig, ax = plt.subplots(figsize=(min(14.0, max(4.0, 2.6 * len(groups) + 1.5)), 5.0))
     for i, g in enumerate(groups):
         n = g["num_seeds"]
         for j, r in enumerate(g["seeds"]):
@@ -118,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             ax.errorbar(x, r["success_once"], yerr=[[r["success_once"] - r["ci"][0]], [r["ci"][1] - r["success_once"]]],
                         fmt="o", color=f"C{i}", capsize=3)
         ax.hlines(g["pooled"]["rate"], i - 0.35, i + 0.35, colors=f"C{i}", linestyles="--")
-    ax.set_xticks(range(len(groups)), [g["label"] for g in groups], fontsize=7, rotation=25, ha="right")
+    ax.set_xticks(range(len(groups)), [textwrap.fill(g["label"], 32) for g in groups], fontsize=7)
     ax.set_ylabel("success_once\n(per seed, 95% CI; dashed: pooled)")
     ax.set_ylim(-0.02, 1.02)
     save_figure(fig, args.out / f"{args.name}.png")
