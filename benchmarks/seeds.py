@@ -8,7 +8,8 @@
         runs/evals/push_bins_s0_50ep/eval.json runs/push_bins_s1 runs/push_bins_s2 --name seeds_PushCube-v1
 
 A source is either an ``eval.json`` written by ``mmada-rl eval`` or a training run directory
-(``recipes/pretrain``, ``recipes/baselines/imitation.py``: its last logged evaluation).
+(``recipes/pretrain``, ``recipes/baselines/imitation.py``: its last logged evaluation, or the one
+logged at step S with ``RUN@S``, e.g. ``runs/push300_pdrop_s0@5000``).
 For every group: each seed's ``success_once`` with its 95% Wilson interval, the mean and
 standard deviation over seeds, and the episodes of all seeds pooled (successes / trials,
 with their Wilson interval). Sources of one group must have been evaluated on the same
@@ -41,8 +42,18 @@ def _run_seed(path: Path) -> int | None:
     return None
 
 
+def _split_step(source: Path) -> tuple[Path, int | None]:
+    """``RUN@STEP`` -> ``(RUN, STEP)`` when ``RUN`` is a directory; any other source -> ``(source, None)``."""
+    run, sep, step = str(source).rpartition("@")
+    if sep and step.isdigit() and Path(run).is_dir():
+        return Path(run), int(step)
+    return source, None
+
+
 def read_source(source: Path) -> dict:
     """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end}``."""
+    label = source
+    source, at_step = _split_step(source)
     if source.is_file():
         data = json.loads(source.read_text())
         if "eval/success_once" not in data:
@@ -56,13 +67,19 @@ def read_source(source: Path) -> dict:
         evaluations = read_evaluations(source)
         if not evaluations:
             raise ValueError(f"{source} logged no evaluation (logs/scalars/eval/success_once.csv is missing or empty).")
-        last = evaluations[-1]
-        row = {"seed": _run_seed(source), "step": last["step"], "episodes": int(last.get("episodes", 0)),
-               "success_once": last["success_once"], "success_at_end": last.get("success_at_end")}
+        if at_step is None:
+            chosen = evaluations[-1]
+        else:
+            chosen = next((e for e in evaluations if e["step"] == at_step), None)
+            if chosen is None:
+                logged = ", ".join(str(e["step"]) for e in evaluations)
+                raise ValueError(f"{source} logged no evaluation at step {at_step} (it logged: {logged}).")
+        row = {"seed": _run_seed(source), "step": chosen["step"], "episodes": int(chosen.get("episodes", 0)),
+               "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end")}
     else:
         raise FileNotFoundError(f"{source}: neither an eval.json nor a run directory.")
     row["successes"] = round(row["success_once"] * row["episodes"])
-    return {"source": str(source), **row}
+    return {"source": str(label), **row}
 
 
 def summarize_group(label: str, sources: list[Path]) -> dict:
@@ -87,7 +104,8 @@ def summarize_group(label: str, sources: list[Path]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--group", nargs="+", action="append", required=True, metavar=("LABEL", "SOURCE"),
-                        help="a label, then one source per training seed (eval.json or run directory); repeatable")
+                        help="a label, then one source per training seed (eval.json, run directory, or RUN@STEP for the "
+                             "run's evaluation logged at STEP); repeatable")
     parser.add_argument("--name", default="seeds", help="result file name under --out (default: seeds)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)

@@ -261,6 +261,13 @@ def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run,
         bench.main(["--group", "no sources", "--out", str(tmp_path)])
     with pytest.raises(FileNotFoundError, match="neither"):
         bench.main(["--group", "toy", str(tmp_path / "missing"), "--out", str(tmp_path)])
+    # RUN@STEP: the evaluation the run logged at that step, and a clear error for a step it did not evaluate at
+    assert bench.main(["--group", "at step", f"{toy_pretrain_run}@6", "--name", "at", "--out", str(tmp_path)]) == 0
+    row, = json.loads((tmp_path / "at.json").read_text())["groups"][0]["seeds"]
+    assert row["step"] == 6 and row["source"] == f"{toy_pretrain_run}@6"
+    assert row["success_once"] == group["seeds"][0]["success_once"]
+    with pytest.raises(ValueError, match=r"no evaluation at step 3 \(it logged: 6\)"):
+        bench.main(["--group", "toy", f"{toy_pretrain_run}@3", "--out", str(tmp_path)])
 
 
 def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_run, tmp_path):
