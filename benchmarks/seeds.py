@@ -9,7 +9,9 @@
 
 A source is either an ``eval.json`` written by ``mmada-rl eval`` or a training run directory
 (``recipes/pretrain``, ``recipes/baselines/imitation.py``: its last logged evaluation, or the one
-logged at step S with ``RUN@S``, e.g. ``runs/push300_pdrop_s0@5000``).
+logged at step S with ``RUN@S``, e.g. ``runs/push300_pdrop_s0@5000``). ``RUN@raw`` (or ``RUN@S@raw``)
+reads the evaluation of the optimizer's own weights that a pretraining run with ``ema.enabled=true
+ema.evaluate_raw=true`` logs beside its weight average's (``eval_raw/...``; ``RUN`` alone: the average).
 For every group: each seed's ``success_once`` with its 95% Wilson interval, the mean and
 standard deviation over seeds, and the episodes of all seeds pooled (successes / trials,
 with their Wilson interval). Sources of one group must have been evaluated on the same
@@ -42,18 +44,25 @@ def _run_seed(path: Path) -> int | None:
     return None
 
 
-def _split_step(source: Path) -> tuple[Path, int | None]:
-    """``RUN@STEP`` -> ``(RUN, STEP)`` when ``RUN`` is a directory; any other source -> ``(source, None)``."""
-    run, sep, step = str(source).rpartition("@")
-    if sep and step.isdigit() and Path(run).is_dir():
-        return Path(run), int(step)
-    return source, None
+def _split_tags(source: Path) -> tuple[Path, int | None, str]:
+    """``RUN[@STEP][@raw]`` -> ``(RUN, STEP or None, log prefix)`` when ``RUN`` is a directory: ``eval``, or
+    ``eval_raw`` with ``@raw``; any other source -> ``(source, None, "eval")``. A path that merely contains
+    ``@`` stays a path."""
+    run, step, raw = str(source), None, False
+    while True:
+        head, sep, tag = run.rpartition("@")
+        if not sep or not ((tag.isdigit() and step is None) or (tag == "raw" and not raw)):
+            break
+        run, step, raw = head, int(tag) if tag.isdigit() else step, raw or tag == "raw"
+    if run != str(source) and Path(run).is_dir():
+        return Path(run), step, "eval_raw" if raw else "eval"
+    return source, None, "eval"
 
 
 def read_source(source: Path) -> dict:
     """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end}``."""
     label = source
-    source, at_step = _split_step(source)
+    source, at_step, prefix = _split_tags(source)
     if source.is_file():
         data = json.loads(source.read_text())
         if "eval/success_once" not in data:
@@ -64,9 +73,11 @@ def read_source(source: Path) -> dict:
         row = {"seed": seed, "step": None, "episodes": episodes, "success_once": float(data["eval/success_once"]),
                "success_at_end": float(data["eval/success_at_end"])}
     elif source.is_dir():
-        evaluations = read_evaluations(source)
+        evaluations = read_evaluations(source, prefix)
         if not evaluations:
-            raise ValueError(f"{source} logged no evaluation (logs/scalars/eval/success_once.csv is missing or empty).")
+            hint = " (a pretraining run logs it with ema.enabled=true ema.evaluate_raw=true)" if prefix == "eval_raw" else ""
+            raise ValueError(f"{source} logged no evaluation (logs/scalars/{prefix}/success_once.csv is missing or "
+                             f"empty){hint}.")
         if at_step is None:
             chosen = evaluations[-1]
         else:
@@ -104,8 +115,9 @@ def summarize_group(label: str, sources: list[Path]) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--group", nargs="+", action="append", required=True, metavar=("LABEL", "SOURCE"),
-                        help="a label, then one source per training seed (eval.json, run directory, or RUN@STEP for the "
-                             "run's evaluation logged at STEP); repeatable")
+                        help="a label, then one source per training seed (eval.json, run directory, RUN@STEP for the "
+                             "run's evaluation logged at STEP, RUN@raw or RUN@STEP@raw for the evaluation of the "
+                             "optimizer's own weights beside a weight average); repeatable")
     parser.add_argument("--name", default="seeds", help="result file name under --out (default: seeds)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)

@@ -89,6 +89,17 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     moved = [k for k in plain if plain[k].is_floating_point() and not torch.allclose(saved[k], plain[k])]
     assert moved and "token_embedding.weight" in moved
 
+    # the seeds report reads either evaluation: RUN the average's, RUN@raw (or RUN@STEP@raw) the own weights'
+    seeds = load_script("benchmarks/seeds.py")
+    assert seeds.main(["--group", "average", str(averaged), "--group", "own", f"{averaged}@raw", f"{averaged}@6@raw",
+                       "--name", "ema", "--out", str(tmp_path)]) == 0
+    average, own_rows = json.loads((tmp_path / "ema.json").read_text())["groups"]
+    assert average["seeds"][0]["success_once"] == final["eval/success_once"]
+    assert [r["success_once"] for r in own_rows["seeds"]] == [final["eval_raw/success_once"]] * 2
+    assert [r["step"] for r in own_rows["seeds"]] == [6, 6] and own_rows["seeds"][1]["source"] == f"{averaged}@6@raw"
+    with pytest.raises(ValueError, match=r"eval_raw/success_once.csv is missing or empty\) \(a pretraining run logs it"):
+        seeds.main(["--group", "plain", f"{toy_run}@raw", "--out", str(tmp_path)])
+
     resumed = tmp_path / "resumed"  # from step 3: both the average and the own weights continue exactly
     (resumed / "checkpoints").mkdir(parents=True)
     shutil.copytree(averaged / "checkpoints" / "step_00000003", resumed / "checkpoints" / "step_00000003")
