@@ -49,11 +49,15 @@ def _split_tags(source: Path) -> tuple[Path, int | None, str]:
     ``eval_raw`` with ``@raw``; any other source -> ``(source, None, "eval")``. A path that merely contains
     ``@`` stays a path."""
     run, step, raw = str(source), None, False
-    while True:
-        head, sep, tag = run.rpartition("@")
-        if not sep or not ((tag.isdigit() and step is None) or (tag == "raw" and not raw)):
+    while "@" in run:
+        head, _, tag = run.rpartition("@")
+        if tag.isdigit() and step is None:
+            step = int(tag)
+        elif tag == "raw" and not raw:
+            raw = True
+        else:
             break
-        run, step, raw = head, int(tag) if tag.isdigit() else step, raw or tag == "raw"
+        run = head
     if run != str(source) and Path(run).is_dir():
         return Path(run), step, "eval_raw" if raw else "eval"
     return source, None, "eval"
