@@ -23,7 +23,7 @@ from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import group_relative_advantages
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_policy_env
-from mmada_rl.policy.execution import ChunkReward, StepLog
+from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -423,6 +423,36 @@ def test_mixed_batches_carry_the_images_of_a_policy_with_its_own_cnn(model, pick
     assert seeing.denoiser.visual_encoder.cnn[0].weight.grad.abs().sum() > 0
 
 
+def test_execution_noise_explores_around_the_greedy_chunk_and_stores_the_executed_tokens(model):
+    """DART-style exploration: the greedy chunk plus noise on the arm (the gripper exact), re-tokenized so that
+    the stored tokens decode to exactly what the env executes; the same generator seed repeats the noise."""
+    env = make_env("PickCube-v1", max_episode_steps=10)
+    actor = MMaDAActor(model, execute_steps=3)
+    obs = env.reset(seed=0)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        greedy = actor(obs.clone()).get(("vla_action", "chunk"))
+        noisy = [ExecutionNoise(actor, 0.1, generator=torch.Generator().manual_seed(s))(obs.clone()) for s in (0, 0, 1)]
+        penv = make_policy_env(env, actor, execute_steps=3, chunk_gamma=0.99)
+        policy = ExecutionNoise(penv.policy, 0.1, generator=torch.Generator().manual_seed(0))
+        rollout = penv.env.rollout(2, policy, break_when_any_done=False)
+    env.close()
+    tokenizer = model.action_tokenizer
+    for td in noisy:
+        chunk = td.get(("vla_action", "chunk"))
+        torch.testing.assert_close(tokenizer.decode(td.get(("vla_action", "tokens"))), chunk)
+        torch.testing.assert_close(td.get("action"), chunk[:3])  # the executed steps are the chunk's first k
+        assert torch.equal(chunk[:, 6], greedy[:, 6])  # the gripper is left exact
+        moved = (chunk[:, :6] - greedy[:, :6]).abs()
+        assert moved.max() > 0.02 and moved.mean() < 0.3  # noise of std 0.1, plus the bins' rounding
+    assert torch.equal(noisy[0]["vla_action", "chunk"], noisy[1]["vla_action", "chunk"])
+    assert not torch.equal(noisy[0]["vla_action", "chunk"], noisy[2]["vla_action", "chunk"])
+    # in a rollout, every decision's stored tokens decode to the actions the env ran
+    assert rollout.shape == (2,) and int(rollout["next", "step_count"][-1]) == 6
+    torch.testing.assert_close(tokenizer.decode(rollout["vla_action", "tokens"])[:, :3], rollout["action"])
+    with pytest.raises(ValueError, match="std must be > 0"):
+        ExecutionNoise(actor, 0.0)
+
+
 # -- the recipe as users run it -------------------------------------------------------------------
 COMMON = ["eval.episodes=1", "eval.max_episode_steps=10", "env.max_episode_steps=10", "collector.total_env_steps=30",
           "collector.decisions_per_batch=2",
@@ -468,6 +498,9 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
      40),
     ("filtered_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
                                  "loss.rwr.normalize_weights=true", "eval.episodes=0"], 30),
+    ("noisy_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
+                              "loss.rwr.normalize_weights=true", "loss.rwr.weight_goal=true", "collector.action_noise=0.1",
+                              "eval.episodes=0"], 30),
 ])
 def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -478,6 +511,7 @@ def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, 
     assert f"{steps} env steps" in proc.stdout and "0 updates" not in proc.stdout
     # the start-up line describes the updates this algorithm makes (PPO trains on fresh decisions only)
     assert ("epochs over each iteration's decisions" in proc.stdout) == (name == "ppo_group")
+    assert ("exploration: greedy chunks + N(0, 0.1^2)" in proc.stdout) == (name == "noisy_self_imitation")
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
         history = json.loads((tmp_path / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
@@ -511,6 +545,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["demos.ratio=1.0", "algo=ppo"], "needs algo=rwr"),
     (["algo=ppo", "loss.ppo.ratio_level=path", "loss.ppo.denoising_steps=2"], "the path ratio needs every step"),
     (["algo=ppo", "loss.ppo.demo_coef=1.0", "demos.ratio=0"], "raise demos.ratio"),
+    (["algo=ppo", "collector.action_noise=0.1"], "path-likelihood PPO needs the sampled paths"),
+    (["collector.action_noise=-0.1"], "collector.action_noise must be >= 0"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -74,6 +74,10 @@ METHODS = {
     "mmada_rft_signed": ("MMaDA-VLA + episode-success advantages, zero-mean signed weights (ours)", "rgb+proprio",
                          [a.replace("weighting=binary", "weighting=signed") for a in _RFT] + ["loss.rwr.standardize_advantage=true"],
                          True),
+    "mmada_rft_noise": ("MMaDA-VLA + filtered self-imitation of the greedy policy's noisy rollouts (ours: executed "
+                        "actions of successful episodes, N(0, 0.1^2) on the arm, goals weighted too)", "rgb+proprio",
+                        [*(a for a in _RFT if not a.startswith("collector.temperature")), "collector.action_noise=0.1",
+                         "loss.rwr.weight_goal=true"], True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),

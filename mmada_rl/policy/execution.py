@@ -33,7 +33,7 @@ from mmada_rl.envs.maniskill import EnvConfig, make_env
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, STEP_KEY
 from mmada_rl.policy.actor import MMaDAActor, check_execute_steps
 
-__all__ = ["ChunkReward", "PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
+__all__ = ["ChunkReward", "ExecutionNoise", "PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
 
 #: written by :class:`~torchrl.envs.transforms.InitTracker`: True on the first step after a reset.
 INIT_KEY = "is_init"
@@ -96,6 +96,56 @@ class TemporalEnsemble(TensorDictModuleBase):
         weights = torch.exp(self.decay * (age - (horizon - 1)).to(chunk.dtype)) * self._valid  # (*B, H)
         action = (weights[..., None] * current).sum(-2) / weights.sum(-1, keepdim=True)  # (*B, A)
         out.set(ACTION_KEY, action.unsqueeze(-2))  # (*B, 1, A)
+        return out
+
+
+class ExecutionNoise(TensorDictModuleBase):
+    """Gaussian exploration around a chunk policy's own actions, with the tokens of what is executed.
+
+    Calls ``actor`` (greedy under a deterministic exploration type: with
+    ``action_readout="mean"`` the regression read-out), adds ``N(0, std^2)``
+    noise to every non-gripper dimension of the chunk, clips it to the env's
+    ``[-1, 1]`` and re-tokenizes it with the policy's action tokenizer; the
+    chunk, its tokens and the executed ``"action"`` are all replaced by the
+    decoded re-tokenized chunk, so the stored tokens are exactly what the env
+    ran (a training row built from them imitates the executed actions). It is
+    DART's noise injection with the policy as its own expert; the decoding path
+    and log-probability the actor wrote no longer describe the chunk, so the
+    rows are for reward-weighted regression, not for path-likelihood PPO.
+
+    Args:
+        actor: an :class:`~mmada_rl.policy.actor.MMaDAActor`.
+        std: noise standard deviation in the env's normalised action units (> 0).
+        generator: RNG of the noise (``None``: torch's global RNG).
+
+    Examples:
+        >>> policy = ExecutionNoise(MMaDAActor(model), std=0.1, generator=torch.Generator().manual_seed(0))
+        >>> with set_exploration_type(ExplorationType.DETERMINISTIC):
+        ...     td = policy(env.reset())        # the greedy chunk, perturbed; tokens match td["action"]
+    """
+
+    def __init__(self, actor: MMaDAActor, std: float, generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        if not std > 0:
+            raise ValueError(f"std must be > 0 (the noise's standard deviation in normalised action units), got {std!r}.")
+        self.actor, self.std, self.generator = actor, float(std), generator
+        tokenizer = actor.model.action_tokenizer
+        arm = torch.ones(tokenizer.action_dim, dtype=torch.bool)
+        arm[list(getattr(tokenizer.config, "gripper_dims", ()))] = False
+        self.register_buffer("arm", arm)  # (A,): dimensions that get noise
+        self.in_keys, self.out_keys = list(actor.in_keys), list(actor.out_keys)
+
+    def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
+        out = self.actor(tensordict, **kwargs)
+        keys = self.actor.tensor_keys
+        chunk = out.get(keys.action_chunk)  # (*B, K, A)
+        noise = torch.randn(chunk.shape, generator=self.generator, dtype=chunk.dtype) * self.std * self.arm.to(chunk.dtype)
+        tokenizer = self.actor.model.action_tokenizer
+        tokens = tokenizer.encode((chunk + noise.to(chunk.device)).clamp(-1.0, 1.0))  # (*B, K, d_tok)
+        executed = tokenizer.decode(tokens).to(chunk)  # (*B, K, A): what the tokens say
+        out.set(keys.action_chunk, executed)
+        out.set(keys.action_tokens, tokens.to(out.get(keys.action_tokens).device))
+        out.set(keys.action, executed[..., : self.actor.execute_steps, :])
         return out
 
 

@@ -5,6 +5,8 @@
     python recipes/finetune/finetune.py --config-name maniskill algo=ppo pretrained=...    # path-likelihood PPO
     python recipes/finetune/finetune.py ... advantage.estimator=group advantage.group_size=4  # critic-free
     python recipes/finetune/finetune.py ... env.reward=sparse advantage.estimator=return loss.rwr.weighting=binary
+    python recipes/finetune/finetune.py ... env.reward=sparse advantage.estimator=return loss.rwr.weighting=binary \
+        collector.action_noise=0.1 loss.rwr.weight_goal=true   # the greedy policy's noisy successes imitated
     python recipes/finetune/finetune.py ... checkpoint.resume=true                          # continue the run
 
 Each iteration, TorchRL's ``Collector`` runs the actor with sampled
@@ -24,6 +26,11 @@ the online rows are the successful rollouts: filtered self-imitation). Then:
   the ratio recomputed exactly from each chunk's stored decoding path; with
   ``loss.ppo.demo_coef > 0`` every minibatch adds that times the masked-diffusion
   loss on ``demos.ratio x replay_buffer.batch_size`` demonstration windows.
+
+With ``collector.action_noise=σ > 0`` (``algo=rwr``) the collector decodes greedily (the policy's own
+read-out, e.g. the mean of the action bins) and executes each chunk with ``N(0, σ²)`` noise on the arm's
+actions (:class:`~mmada_rl.policy.ExecutionNoise`); the online rows hold the executed actions' tokens, so
+with binary weights of episode success the successful noisy rollouts are imitated as demonstrations are.
 
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
@@ -59,6 +66,7 @@ from utils import (
     make_gae,
     make_logger,
     make_loss,
+    make_noise_generator,
     make_online_buffer,
     make_optim,
     make_policy_env_for,
@@ -126,6 +134,9 @@ def main(cfg: DictConfig) -> None:
     n_online, n_demo = split_batch(cfg)
     logger = make_logger(cfg, run_dir)
     generators = {"demos": demo_windows._rng} if demo_windows is not None else {}
+    noise_generator = make_noise_generator(cfg)  # collector.action_noise > 0: the exploration noise's RNG
+    if noise_generator is not None:
+        generators["noise"] = noise_generator
 
     iteration, env_steps, updates, history = 0, 0, 0, []
 
@@ -159,10 +170,13 @@ def main(cfg: DictConfig) -> None:
     updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
                     f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}"
                     + (f", each with {n_demo} demo windows (demo_coef {cfg.loss.ppo.demo_coef})" if demo_anchor is not None else ""))
-    print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; "
+    noise = float(cfg.collector.get("action_noise") or 0.0)
+    exploring = (f"greedy chunks + N(0, {noise:g}^2) on the arm's actions" if noise > 0 else
+                 f"tokens sampled at temperature {cfg.collector.temperature}")
+    print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; exploration: {exploring}; "
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps")
 
-    penv = make_policy_env_for(cfg, model)
+    penv = make_policy_env_for(cfg, model, noise_generator)
     collector = make_collector(cfg, penv)
     batches = iter(collector)
     pbar = tqdm(total=total, initial=min(env_steps, total), desc=f"finetune {cfg.algo}", unit="step")

@@ -40,7 +40,7 @@ from mmada_rl.keys import (
 )
 from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.advantages import group_relative_advantages
-from mmada_rl.policy import MMaDAActor, MMaDAModel
+from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.value import ValueNetwork, make_value_operator
@@ -66,6 +66,12 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"demos.ratio must lie in [0, 1], got {cfg.demos.ratio!r}.")
     if float(cfg.demos.ratio) == 1.0 and cfg.algo != "rwr":
         raise ValueError("demos.ratio=1 (updates on demonstrations only, the no-RL control) needs algo=rwr.")
+    noise = float(cfg.collector.get("action_noise") or 0.0)
+    if noise < 0:
+        raise ValueError(f"collector.action_noise must be >= 0 (0: sampled tokens), got {noise!r}.")
+    if noise > 0 and cfg.algo != "rwr":
+        raise ValueError("collector.action_noise > 0 stores the executed actions' tokens, which no decoding path produced; "
+                         "path-likelihood PPO needs the sampled paths: use algo=rwr or collector.action_noise=0.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) < 0:
         raise ValueError(f"loss.ppo.demo_coef must be >= 0, got {cfg.loss.ppo.demo_coef!r}.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) > 0 and split_batch(cfg)[1] == 0:
@@ -83,13 +89,21 @@ def load_pretrained(cfg: DictConfig) -> MMaDAModel:
     return MMaDAModel.load(resolve_model_dir(cfg.pretrained), device=cfg.device)
 
 
+def action_noise(cfg: DictConfig) -> float:
+    """``collector.action_noise`` (0 when absent): the std of the Gaussian exploration around greedy chunks."""
+    return float(cfg.collector.get("action_noise") or 0.0)
+
+
 def exploration_sampler(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionSampler:
-    """The model's sampler at ``collector.temperature``, used while collecting only.
+    """The model's sampler at ``collector.temperature``, used while collecting only; with
+    ``collector.action_noise > 0`` the model's own sampler (greedy chunks, then noise).
 
     Evaluation keeps the model's own sampler: greedy decoding commits positions in
     order of their (temperature-scaled) confidence, so the temperature changes
     greedy chunks too, and every evaluation must use the same one.
     """
+    if action_noise(cfg) > 0:
+        return model.sampler
     sampler = asdict(model.sampler.config)
     sampler["temperature"] = float(cfg.collector.temperature)
     return MaskedDiffusionSampler(SamplerConfig(**sampler))
@@ -129,19 +143,30 @@ class _FailAfter:
         return FailAfterSteps(self.steps)
 
 
-def make_policy_env_for(cfg: DictConfig, model: MMaDAModel) -> PolicyEnv:
-    """The training env: chunks of ``execute_steps`` actions, each with its discounted reward sum."""
+def make_noise_generator(cfg: DictConfig) -> torch.Generator | None:
+    """The RNG of :class:`~mmada_rl.policy.ExecutionNoise` (checkpointed with the run), or ``None`` without noise."""
+    return torch.Generator().manual_seed(int(cfg.seed)) if action_noise(cfg) > 0 else None
+
+
+def make_policy_env_for(cfg: DictConfig, model: MMaDAModel, noise_generator: torch.Generator | None = None) -> PolicyEnv:
+    """The training env: chunks of ``execute_steps`` actions, each with its discounted reward sum; with
+    ``collector.action_noise > 0`` the policy is the actor wrapped in :class:`~mmada_rl.policy.ExecutionNoise`."""
     fail = cfg.debug.fail_after_env_steps
     env = make_env(make_env_config(cfg, model), extra_transform=_FailAfter(int(fail)) if fail else None)
     actor = MMaDAActor(model, execute_steps=cfg.collector.execute_steps)
-    return make_policy_env(env, actor, chunk_gamma=float(cfg.advantage.gamma))
+    penv = make_policy_env(env, actor, chunk_gamma=float(cfg.advantage.gamma))
+    if action_noise(cfg) > 0:
+        penv = penv._replace(policy=ExecutionNoise(penv.policy, action_noise(cfg), generator=noise_generator))
+    return penv
 
 
 def make_collector(cfg: DictConfig, penv: PolicyEnv) -> Collector:
-    """TorchRL's collector running the actor with sampled (not greedy) decoding."""
+    """TorchRL's collector running the actor with sampled decoding, or greedy decoding when
+    ``collector.action_noise > 0`` explores by noise on the executed actions instead."""
+    exploration = ExplorationType.DETERMINISTIC if action_noise(cfg) > 0 else ExplorationType.RANDOM
     return Collector(
         penv.env, penv.policy, frames_per_batch=int(cfg.collector.decisions_per_batch), total_frames=-1,
-        exploration_type=ExplorationType.RANDOM, device="cpu",
+        exploration_type=exploration, device="cpu",
     )
 
 
