@@ -21,6 +21,7 @@ current step made by the last ``K`` chunks.
 """
 from __future__ import annotations
 
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -32,6 +33,7 @@ from torchrl.envs.transforms import MultiAction, Transform
 from mmada_rl.envs.maniskill import EnvConfig, make_env
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, STEP_KEY
 from mmada_rl.policy.actor import MMaDAActor, check_execute_steps
+from mmada_rl.tokenizers import ActionOutOfRangeWarning
 
 __all__ = ["ChunkReward", "ExecutionNoise", "PolicyEnv", "StepLog", "TemporalEnsemble", "make_policy_env"]
 
@@ -105,7 +107,8 @@ class ExecutionNoise(TensorDictModuleBase):
     Calls ``actor`` (greedy under a deterministic exploration type: with
     ``action_readout="mean"`` the regression read-out), adds ``N(0, std^2)``
     noise to every non-gripper dimension of the chunk, clips it to the env's
-    ``[-1, 1]`` and re-tokenizes it with the policy's action tokenizer; the
+    ``[-1, 1]`` and re-tokenizes it with the policy's action tokenizer (which
+    clips each dimension to the range it was fitted on, silently here); the
     chunk, its tokens and the executed ``"action"`` are all replaced by the
     decoded re-tokenized chunk, so the stored tokens are exactly what the env
     ran (a training row built from them imitates the executed actions). It is
@@ -141,7 +144,9 @@ class ExecutionNoise(TensorDictModuleBase):
         chunk = out.get(keys.action_chunk)  # (*B, K, A)
         noise = torch.randn(chunk.shape, generator=self.generator, dtype=chunk.dtype) * self.std * self.arm.to(chunk.dtype)
         tokenizer = self.actor.model.action_tokenizer
-        tokens = tokenizer.encode((chunk + noise.to(chunk.device)).clamp(-1.0, 1.0))  # (*B, K, d_tok)
+        with warnings.catch_warnings():  # noise past the tokenizer's fitted range is clipped to it, by design
+            warnings.simplefilter("ignore", ActionOutOfRangeWarning)
+            tokens = tokenizer.encode((chunk + noise.to(chunk.device)).clamp(-1.0, 1.0))  # (*B, K, d_tok)
         executed = tokenizer.decode(tokens).to(chunk)  # (*B, K, A): what the tokens say
         out.set(keys.action_chunk, executed)
         out.set(keys.action_tokens, tokens.to(out.get(keys.action_tokens).device))
