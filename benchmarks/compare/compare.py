@@ -53,6 +53,9 @@ from pretraining import read_scalar  # noqa: E402
 _RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
         "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
         "collector.temperature=0.5"]
+#: filtered self-imitation of the executed actions of the greedy policy's noisy rollouts (goal tokens weighted too)
+_RFT_NOISE = [*(a for a in _RFT if not a.startswith("collector.temperature")), "collector.action_noise=0.1",
+              "loss.rwr.weight_goal=true"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -76,8 +79,10 @@ METHODS = {
                          True),
     "mmada_rft_noise": ("MMaDA-VLA + filtered self-imitation of the greedy policy's noisy rollouts (ours: executed "
                         "actions of successful episodes, N(0, 0.1^2) on the arm, goals weighted too)", "rgb+proprio",
-                        [*(a for a in _RFT if not a.startswith("collector.temperature")), "collector.action_noise=0.1",
-                         "loss.rwr.weight_goal=true"], True),
+                        _RFT_NOISE, True),
+    "mmada_rft_noise_small": ("MMaDA-VLA + filtered self-imitation of the greedy policy's noisy rollouts, half the noise "
+                              "(ours: N(0, 0.05^2) on the arm)", "rgb+proprio",
+                              [a.replace("action_noise=0.1", "action_noise=0.05") for a in _RFT_NOISE], True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),
