@@ -54,6 +54,7 @@ from mmada_rl.evaluation import evaluate
 from mmada_rl.training import optimizer_step, resume_training, save_checkpoint, start_run
 from utils import (
     PREFIX,
+    action_noise,
     check_config,
     decision_rows,
     executed_steps,
@@ -170,7 +171,7 @@ def main(cfg: DictConfig) -> None:
     updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
                     f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}"
                     + (f", each with {n_demo} demo windows (demo_coef {cfg.loss.ppo.demo_coef})" if demo_anchor is not None else ""))
-    noise = float(cfg.collector.get("action_noise") or 0.0)
+    noise = action_noise(cfg)
     exploring = (f"greedy chunks + N(0, {noise:g}^2) on the arm's actions" if noise > 0 else
                  f"tokens sampled at temperature {cfg.collector.temperature}")
     print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; exploration: {exploring}; "

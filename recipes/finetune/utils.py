@@ -66,7 +66,7 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"demos.ratio must lie in [0, 1], got {cfg.demos.ratio!r}.")
     if float(cfg.demos.ratio) == 1.0 and cfg.algo != "rwr":
         raise ValueError("demos.ratio=1 (updates on demonstrations only, the no-RL control) needs algo=rwr.")
-    noise = float(cfg.collector.get("action_noise") or 0.0)
+    noise = action_noise(cfg)
     if noise < 0:
         raise ValueError(f"collector.action_noise must be >= 0 (0: sampled tokens), got {noise!r}.")
     if noise > 0 and cfg.algo != "rwr":
