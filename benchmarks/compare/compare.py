@@ -380,7 +380,8 @@ def report(args: argparse.Namespace) -> int:
                   f"# Offline-to-online comparison\n\n{table}\n\n"
                   f"## success_once at equal online env steps (mean over seeds)\n\n{budget_rows}\n\n"
                   f"## Training rollouts: successes / episodes the acting policy finished, per {args.window:,} env steps\n\n"
-                  "Our methods act with sampled tokens (the policy fine-tuning trains) while the evaluations above decode "
+                  "Our methods act with sampled tokens (the policy fine-tuning trains), or with the greedy chunk's actions "
+                  "plus Gaussian noise (the methods named for noisy rollouts), while the evaluations above decode "
                   f"greedily.\n\n{rollout_rows}\n\n"
                   "![curves](compare.png)\n", directory=args.out)
     print(table, budget_rows, rollout_rows, sep="\n\n")
