@@ -132,18 +132,15 @@ class ExecutionNoise(TensorDictModuleBase):
         if not std > 0:
             raise ValueError(f"std must be > 0 (the noise's standard deviation in normalised action units), got {std!r}.")
         self.actor, self.std, self.generator = actor, float(std), generator
-        tokenizer = actor.model.action_tokenizer
-        arm = torch.ones(tokenizer.action_dim, dtype=torch.bool)
-        arm[list(getattr(tokenizer.config, "gripper_dims", ()))] = False
-        self.register_buffer("arm", arm)  # (A,): dimensions that get noise
         self.in_keys, self.out_keys = list(actor.in_keys), list(actor.out_keys)
 
     def forward(self, tensordict: TensorDictBase, **kwargs) -> TensorDictBase:
         out = self.actor(tensordict, **kwargs)
         keys = self.actor.tensor_keys
         chunk = out.get(keys.action_chunk)  # (*B, K, A)
-        noise = torch.randn(chunk.shape, generator=self.generator, dtype=chunk.dtype) * self.std * self.arm.to(chunk.dtype)
         tokenizer = self.actor.model.action_tokenizer
+        arm = ~tokenizer.normalizer.is_gripper.cpu()  # (A,): the dimensions that get noise
+        noise = torch.randn(chunk.shape, generator=self.generator, dtype=chunk.dtype) * self.std * arm.to(chunk.dtype)
         with warnings.catch_warnings():  # noise past the tokenizer's fitted range is clipped to it, by design
             warnings.simplefilter("ignore", ActionOutOfRangeWarning)
             tokens = tokenizer.encode((chunk + noise.to(chunk.device)).clamp(-1.0, 1.0))  # (*B, K, d_tok)
