@@ -145,8 +145,11 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    # long labels wrapped under their group rather than rotated off the figure
-    fig, ax = plt.subplots(figsize=(min(14.0, max(4.0, 2.6 * len(groups) + 1.5)), 5.0))
+    # long labels wrapped under their group rather than rotated off the figure: 2.6 inches per group (up to 10
+    # groups), each label's lines as wide as its share of the figure allows
+    width = min(27.5, max(4.0, 2.6 * len(groups) + 1.5))
+    label_chars = max(12, min(32, int(32 * (width - 1.5) / (2.6 * len(groups)))))
+    fig, ax = plt.subplots(figsize=(width, 5.0))
     for i, g in enumerate(groups):
         n = g["num_seeds"]
         for j, r in enumerate(g["seeds"]):
@@ -154,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             ax.errorbar(x, r["success_once"], yerr=[[r["success_once"] - r["ci"][0]], [r["ci"][1] - r["success_once"]]],
                         fmt="o", color=f"C{i}", capsize=3)
         ax.hlines(g["pooled"]["rate"], i - 0.35, i + 0.35, colors=f"C{i}", linestyles="--")
-    ax.set_xticks(range(len(groups)), [textwrap.fill(g["label"], 32) for g in groups], fontsize=7)
+    ax.set_xticks(range(len(groups)), [textwrap.fill(g["label"], label_chars) for g in groups], fontsize=7)
     ax.set_ylabel("success_once\n(per seed, 95% CI; dashed: pooled)")
     ax.set_ylim(-0.02, 1.02)
     save_figure(fig, args.out / f"{args.name}.png")
