@@ -147,8 +147,9 @@ def main(argv: list[str] | None = None) -> int:
 
     # long labels wrapped under their group rather than rotated off the figure: 2.6 inches per group (up to 10
     # groups), each label's lines as wide as its share of the figure allows
-    width = min(27.5, max(4.0, 2.6 * len(groups) + 1.5))
-    label_chars = max(12, min(32, int(32 * (width - 1.5) / (2.6 * len(groups)))))
+    group_in, margin_in, max_groups = 2.6, 1.5, 10
+    width = margin_in + group_in * min(len(groups), max_groups)
+    label_chars = max(12, min(32, int(32 * (width - margin_in) / (group_in * len(groups)))))
     fig, ax = plt.subplots(figsize=(width, 5.0))
     for i, g in enumerate(groups):
         n = g["num_seeds"]
