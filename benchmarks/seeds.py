@@ -148,8 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     # long labels wrapped under their group rather than rotated off the figure: 2.6 inches per group (up to 10
     # groups), each label's lines as wide as its share of the figure allows
     group_in, margin_in, max_groups = 2.6, 1.5, 10
-    width = margin_in + group_in * min(len(groups), max_groups)
-    label_chars = max(12, min(32, int(32 * (width - margin_in) / (group_in * len(groups)))))
+    groups_in_width = min(len(groups), max_groups)
+    width = margin_in + group_in * groups_in_width
+    label_chars = max(12, 32 * groups_in_width // len(groups))
     fig, ax = plt.subplots(figsize=(width, 5.0))
     for i, g in enumerate(groups):
         n = g["num_seeds"]
