@@ -12,6 +12,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mmada_rl.diffusion.path import DecodingPath, path_log_prob
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
+from mmada_rl.data.windows import append_state_differences
 from mmada_rl.envs.maniskill import EnvConfig, make_env
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.keys import (
@@ -152,6 +153,43 @@ def test_dropped_proprio_dims_leave_the_sequence(model, observations, tmp_path):
         MMaDAModel(MMaDAConfig(denoiser="tiny", proprio_drop_dims=[29]), tokenizers)
     with pytest.raises(ValueError, match="needs use_proprio=True"):
         MMaDAConfig(use_proprio=False, proprio_drop_dims=[9])
+
+
+def test_state_differences_put_the_goal_relative_to_the_gripper_into_the_sequence(observations, tmp_path):
+    """``state_differences``: PickCube-v1's goal minus the TCP position, appended to the state as dims 29..31
+    before the proprio tokens are made; each follows its two dimensions and nothing else."""
+    pairs = [[26, 19], [27, 20], [28, 21]]
+    states = observations[STATE_KEY]
+    widened = append_state_differences(states, pairs)
+    assert widened.shape[-1] == 32
+    torch.testing.assert_close(widened[:, 29:], states[:, 26:29] - states[:, 19:22])
+    torch.manual_seed(0)
+    relative = build_tiny_model(observations[IMAGE_KEY], widened, torch.rand(64, 7) * 2 - 1,
+                                observations[INSTRUCTION_KEY][0], state_differences=pairs)
+    assert relative.state_dim == 29 and relative.layout.config.proprio_tokens == 32
+    obs = observations[:2].clone()
+    tokens = relative._condition(obs)["proprio_ids"]
+    assert torch.equal(tokens, relative.proprio_tokenizer.encode(append_state_differences(obs[STATE_KEY], pairs)))
+    lifted = obs.clone()
+    lifted[STATE_KEY][:, 21] += 0.5 * (widened[:, 31].amax() - widened[:, 31].amin())  # the gripper higher
+    moved = relative._condition(lifted)["proprio_ids"]
+    changed = (moved != tokens).any(0).nonzero().flatten().tolist()
+    assert changed == [21, 31]  # its own token and the goal's height relative to it
+    assert relative.proprio_segment_index([29, 30, 31]).tolist() == [29, 30, 31]  # state dropout can keep them
+    assert MMaDAActor(relative)(obs)[ACTION_CHUNK_KEY].shape == (2, CHUNK, 7)
+    reloaded = MMaDAModel.load(relative.save(tmp_path / "relative"))
+    assert reloaded.config.state_differences == pairs and torch.equal(reloaded.prompt(obs), relative.prompt(obs))
+    # a proprio tokenizer fitted on the bare 29-dimensional state leaves no room for the differences
+    plain = Tokenizers(relative.text_tokenizer, relative.image_tokenizer, relative.action_tokenizer,
+                       build_tiny_model(observations[IMAGE_KEY], states, torch.rand(64, 7) * 2 - 1,
+                                        observations[INSTRUCTION_KEY][0]).proprio_tokenizer)
+    with pytest.raises(ValueError, match=r"it covers 29 dimensions, so with 3 differences appended the state has 26"):
+        MMaDAModel(MMaDAConfig(denoiser="tiny", state_differences=pairs), plain)
+    for bad in ([[26]], [[26, 26]], [[-1, 3]]):
+        with pytest.raises(ValueError, match="must be pairs"):
+            MMaDAConfig(state_differences=bad)
+    with pytest.raises(ValueError, match="needs use_proprio=True"):
+        MMaDAConfig(use_proprio=False, state_differences=pairs)
 
 
 def test_greedy_is_deterministic_and_random_samples(model, observations):

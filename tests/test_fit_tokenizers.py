@@ -16,7 +16,7 @@ def test_fit_tokenizers_command_writes_tokenizers_and_report(pick_demos, run_cli
     out = tmp_path / "tok"
     proc = run_cli("fit-tokenizers", "--data", pick_demos, "--out", out, "--action-steps", "30", "--image-steps", "5",
                    "--codebook-size", "32", "--tokens-per-action", "2", "--replay-episodes", "1",
-                   "--image-foreground-weight", "10")
+                   "--image-foreground-weight", "10", "--state-differences", "26:19", "27:20", "28:21")
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads((out / "report.json").read_text())
     assert set(report["actions"]) == {"vq (ours)", "256 bins", "residual FSQ"}
@@ -33,6 +33,7 @@ def test_fit_tokenizers_command_writes_tokenizers_and_report(pick_demos, run_cli
     assert "replay success" in (out / "report.md").read_text()
     loaded = FittedTokenizers.load(out)
     assert loaded.action.tokens_per_action == 2 and loaded.proprio is not None
+    assert loaded.proprio.config.action_dim == 29 + 3  # PickCube-v1's state and the goal relative to the gripper
     assert loaded.image.config.foreground_weight == 10.0 and loaded.image.background.float().std() > 0  # a fitted median frame
 
 

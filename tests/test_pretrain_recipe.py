@@ -124,6 +124,8 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
         (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
         (["model.action_readout=mean"], "VQActionTokenizer codes have no mean"),
+        (["model.state_differences=[[26,19]]"], "covers 29 dimensions, not the demonstrations' 29 plus the 1 of "
+                                                "model.state_differences=[[26, 19]]"),
     ],
 )
 def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):
@@ -145,6 +147,20 @@ def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
     assert config["type"] == "UniformBinActionTokenizer" and config["config"]["num_bins"] == 32
     saved = json.loads((latest_checkpoint(run_dir) / "model" / "model.json").read_text())
     assert saved["config"]["action_readout"] == "mean"  # the saved policy reads its greedy chunks out by their mean
+
+
+def test_state_differences_are_fitted_and_read_by_config_alone(pick_demos, tmp_path):
+    """``model.state_differences``: the recipe fits the proprio tokenizer on the state with the differences
+    appended, the saved policy reads them, and state dropout can keep them readable."""
+    run_dir = tmp_path / "relative"
+    proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=2",
+                      "eval.episodes=0", "model.state_differences=[[26,19],[27,20],[28,21]]",
+                      "loss.proprio_drop_prob=0.5", "loss.proprio_drop_keep_dims=[26,27,28,29,30,31]")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    proprio = json.loads((run_dir / "tokenizers" / "proprio" / "config.json").read_text())
+    assert proprio["config"]["action_dim"] == 32
+    saved = json.loads((latest_checkpoint(run_dir) / "model" / "model.json").read_text())
+    assert saved["config"]["state_differences"] == [[26, 19], [27, 20], [28, 21]]
 
 
 def test_state_dropout_can_keep_the_goal_position_readable(toy_run):

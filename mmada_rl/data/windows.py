@@ -252,6 +252,38 @@ def pad_state(state: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.nn.functional.pad(state, (0, dim - state.shape[-1]))
 
 
+def check_state_differences(differences, dim: int | None = None) -> list[list[int]]:
+    """``differences`` as ``[[a, b], ...]`` pairs of state dimensions (``dim``: the state's size, if known).
+
+    Raises:
+        ValueError: an entry is not a pair of two different non-negative dimensions, or
+            names a dimension outside ``0..dim-1``.
+    """
+    pairs = []
+    for pair in differences or []:
+        pair = [int(d) for d in pair]
+        if len(pair) != 2 or pair[0] == pair[1] or min(pair) < 0 or (dim is not None and max(pair) >= dim):
+            where = f" of the state's dimensions 0..{dim - 1}" if dim is not None else ""
+            raise ValueError(f"state_differences entries must be pairs [a, b] of two different dimensions{where}; "
+                             f"got {pair} in {[list(p) for p in differences]}.")
+        pairs.append(pair)
+    return pairs
+
+
+def append_state_differences(state: torch.Tensor, differences) -> torch.Tensor:
+    """``state`` with ``state[..., a] - state[..., b]`` appended for each pair ``[a, b]`` of ``differences``.
+
+    Relative quantities the policy would otherwise have to work out from two separately
+    quantised tokens, e.g. PickCube-v1's goal relative to the gripper:
+    ``[[26, 19], [27, 20], [28, 21]]`` (goal position minus TCP position).
+    """
+    pairs = check_state_differences(differences, state.shape[-1])
+    if not pairs:
+        return state
+    a, b = torch.tensor(pairs, device=state.device).T
+    return torch.cat([state, state[..., a] - state[..., b]], dim=-1)
+
+
 def kept_state_dims(drop, dim: int, option: str) -> list[int]:
     """The state dimensions ``0..dim-1`` a policy reads when the ones in ``drop`` are left out.
 

@@ -29,7 +29,7 @@ from safetensors.torch import load_file, save_file
 from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
 from torch import nn
 
-from mmada_rl.data.windows import kept_state_dims, pad_state
+from mmada_rl.data.windows import append_state_differences, check_state_differences, kept_state_dims, pad_state
 from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.path import DecodingPath
@@ -79,6 +79,13 @@ class MMaDAConfig:
             tokenizer directory serves runs with and without them). E.g.
             ``[9, ..., 17]``: the Panda's joint velocities, which let a policy copy
             its own motion from the demonstrations' pauses (the copycat problem).
+        state_differences: pairs ``[a, b]`` of state dimensions whose difference
+            ``state[a] - state[b]`` is appended to the state before it is tokenized, as
+            dimensions ``D, D + 1, ...`` after the state's ``D`` (so ``proprio_drop_dims`` and
+            state dropout can name them). The proprio tokenizer must be fitted on the state
+            with them appended (``TokenizerFitConfig.state_differences``). E.g.
+            ``[[26, 19], [27, 20], [28, 21]]``: PickCube-v1's goal relative to the gripper,
+            which the policy otherwise has to work out from two separately binned tokens.
         interleave: interleave goal and action tokens.
         denoiser: a preset name (``tiny``, ``small``, ``base``) or a full config dict.
         denoiser_overrides: fields overriding the preset (e.g. ``{"attention": "block_causal"}``).
@@ -97,6 +104,7 @@ class MMaDAConfig:
     use_proprio: bool = True
     observation_tokens: bool = True
     proprio_drop_dims: list[int] = field(default_factory=list)
+    state_differences: list[list[int]] = field(default_factory=list)
     interleave: bool = False
     denoiser: str | dict = "small"
     denoiser_overrides: dict = field(default_factory=dict)
@@ -110,6 +118,9 @@ class MMaDAConfig:
         self.proprio_drop_dims = sorted({int(d) for d in self.proprio_drop_dims})
         if self.proprio_drop_dims and not self.use_proprio:
             raise ValueError(f"proprio_drop_dims={self.proprio_drop_dims} needs use_proprio=True.")
+        self.state_differences = check_state_differences(self.state_differences)
+        if self.state_differences and not self.use_proprio:
+            raise ValueError(f"state_differences={self.state_differences} needs use_proprio=True.")
         _check_action_readout(self.action_readout)
         denoiser = self.denoiser_config()  # validates
         if not self.observation_tokens and denoiser.visual_encoder_channels is None:
@@ -179,6 +190,7 @@ class MMaDAModel(nn.Module):
         self.proprio_tokenizer = tokenizers.proprio if config.use_proprio else None
         for tok in self.tokenizers():
             tok.requires_grad_(False).eval()
+        self._check_state_differences()
         self.register_buffer("proprio_index", self._proprio_index(), persistent=False)
         grid = self.image_tokenizer.config.grid_size
         self.vocab = UnifiedVocabulary(
@@ -248,6 +260,25 @@ class MMaDAModel(nn.Module):
         finally:
             self.sampler, self.action_readout = saved_sampler, saved_readout
 
+    @property
+    def state_dim(self) -> int | None:
+        """Size of the (zero-padded) state the policy reads, before ``state_differences`` are appended."""
+        if self.proprio_tokenizer is None:
+            return None
+        return self.proprio_tokenizer.config.action_dim - len(self.config.state_differences)
+
+    def _check_state_differences(self) -> None:
+        pairs = self.config.state_differences
+        if not pairs or self.proprio_tokenizer is None:
+            return
+        self._check_one_token_per_state_dim("state_differences")
+        if max(max(pair) for pair in pairs) >= self.state_dim:
+            covers = self.proprio_tokenizer.config.action_dim
+            raise ValueError(f"state_differences={pairs} name state dimensions the proprio tokenizer does not leave them: "
+                             f"it covers {covers} dimensions, so with {len(pairs)} differences appended the state has "
+                             f"{self.state_dim}. Fit it on the state with them appended "
+                             "(TokenizerFitConfig.state_differences, `mmada-rl fit-tokenizers --state-differences`).")
+
     def _proprio_index(self) -> torch.Tensor:
         """Which of the proprio tokenizer's tokens enter the sequence (all but ``proprio_drop_dims``)."""
         tok = self.proprio_tokenizer
@@ -315,7 +346,13 @@ class MMaDAModel(nn.Module):
         }
         if self.proprio_tokenizer is not None:
             # a multi-task model's tokenizer spans the largest state; smaller task states are zero-padded
-            state = pad_state(td.get(STATE_KEY), self.proprio_tokenizer.config.action_dim)
+            state = td.get(STATE_KEY)
+            if state.shape[-1] > self.state_dim:
+                raise ValueError(
+                    f"the state has {state.shape[-1]} dimensions but the proprio tokenizer covers {self.state_dim}"
+                    + (f" before the {len(self.config.state_differences)} state_differences" if self.config.state_differences
+                       else "") + ": fit the tokenizers with the model's state_differences on these tasks' states.")
+            state = append_state_differences(pad_state(state, self.state_dim), self.config.state_differences)
             with warnings.catch_warnings():
                 # states beyond the demonstrations' range are clipped to the edge bins at every step
                 # of a rollout; the normaliser still counts them (proprio_tokenizer.normalizer.num_out_of_range)

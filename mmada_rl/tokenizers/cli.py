@@ -74,7 +74,8 @@ def _run(args: argparse.Namespace) -> int:
     cfg = TokenizerFitConfig(action_type=args.action_type, action=action, action_steps=args.action_steps,
                              image={"codebook_size": args.image_codebook_size, "grid_size": args.image_grid,
                                     "foreground_weight": args.image_foreground_weight},
-                             image_steps=args.image_steps, proprio_bins=args.proprio_bins, seed=args.seed)
+                             image_steps=args.image_steps, proprio_bins=args.proprio_bins,
+                             state_differences=args.state_differences, seed=args.seed)
     fitted = fit_tokenizers(buffer, cfg)
     fitted.save(out)
     baselines = {}
@@ -98,6 +99,15 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _state_pair(text: str) -> list[int]:
+    """``"26:19"`` → ``[26, 19]`` (an argparse type)."""
+    try:
+        a, b = (int(part) for part in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected A:B, two state dimensions, e.g. 26:19; got {text!r}") from None
+    return [a, b]
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "fit-tokenizers",
@@ -117,6 +127,10 @@ def add_parser(sub) -> None:
     p.add_argument("--image-grid", type=int, default=8, help="image token grid side: grid^2 tokens per image (default: %(default)s)")
     p.add_argument("--image-foreground-weight", type=float, default=1.0, help="weight of the VQ-VAE's squared error at pixels that differ from the median frame (robot, objects): above 1 it keeps small objects such as PickCube's cube, which plain MSE decodes away; 1: plain MSE (default: %(default)s)")
     p.add_argument("--image-steps", type=int, default=3000, help="image VQ-VAE training steps (default: %(default)s)")
+    p.add_argument("--state-differences", type=_state_pair, nargs="+", default=[], metavar="A:B",
+                   help="append state[A] - state[B] to the state before its bins are fitted, one per pair (the "
+                        "policy's model.state_differences, e.g. 26:19 27:20 28:21, PickCube-v1's goal minus the "
+                        "gripper's position); default: none")
     p.add_argument("--proprio-bins", type=int, default=64, help="bins per state dimension for proprioception tokens; 0: none (default: %(default)s)")
     p.add_argument("--fsq-levels", type=int, nargs="+", default=[2] * 8, help="FSQ levels per latent channel; the vocabulary is their product, 2^8 = 256 by default like the VQ codebook (default: %(default)s)")
     p.add_argument("--baselines", default=True, action=argparse.BooleanOptionalAction, help="also fit and report the baselines (default: yes)")

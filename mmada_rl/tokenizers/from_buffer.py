@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from mmada_rl.data.windows import pad_state
+from mmada_rl.data.windows import append_state_differences, check_state_differences, pad_state
 from mmada_rl.keys import ACTION_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.tokenizers.action_bins import UniformBinActionTokenizer, UniformBinActionTokenizerConfig
 from mmada_rl.tokenizers.action_fsq import FSQActionTokenizer, FSQActionTokenizerConfig
@@ -40,6 +40,9 @@ class TokenizerFitConfig:
         image_steps, image_batch_size: VQ-VAE training length.
         text_max_len: instruction length in tokens.
         proprio_bins: bins per state dimension for proprioception tokens (0: none).
+        state_differences: pairs ``[a, b]`` whose difference ``state[a] - state[b]`` is appended
+            to the state before the proprio tokenizer is fitted (the policy's
+            ``MMaDAConfig.state_differences``, which must be the same).
         seed: seeds every fit.
     """
 
@@ -51,6 +54,7 @@ class TokenizerFitConfig:
     image_batch_size: int = 32
     text_max_len: int = 16
     proprio_bins: int = 256
+    state_differences: list = field(default_factory=list)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -58,6 +62,9 @@ class TokenizerFitConfig:
             raise ValueError(f"action_type must be one of {sorted(ACTION_TOKENIZERS)}, got {self.action_type!r}.")
         if self.proprio_bins == 1 or self.proprio_bins < 0:
             raise ValueError(f"proprio_bins must be 0 (no proprio tokens) or >= 2, got {self.proprio_bins}.")
+        self.state_differences = check_state_differences(self.state_differences)
+        if self.state_differences and not self.proprio_bins:
+            raise ValueError(f"state_differences={self.state_differences} need proprio tokens (proprio_bins > 0).")
 
 
 @dataclass
@@ -138,13 +145,20 @@ def fit_tokenizers(buffers, cfg: TokenizerFitConfig | None = None, *, progress: 
     fits["action"] = fit_action_tokenizer(action, arrays["action"], steps=cfg.action_steps, seed=cfg.seed, progress=progress)
     proprio = None
     if cfg.proprio_bins:
-        # the state is quantised per dimension over its full data range (nothing seen in training is clipped)
-        proprio = UniformBinActionTokenizer(
-            UniformBinActionTokenizerConfig(action_dim=arrays["state"].shape[-1], gripper_dims=(), num_bins=cfg.proprio_bins,
-                                            low_quantile=0.0, high_quantile=1.0)
-        )
-        fit_action_tokenizer(proprio, arrays["state"], progress=False)
+        proprio = fit_proprio_tokenizer(arrays["state"], cfg.proprio_bins, cfg.state_differences)
     return FittedTokenizers(text, image, action, proprio, fits)
+
+
+def fit_proprio_tokenizer(states: torch.Tensor, num_bins: int = 256, state_differences=()) -> UniformBinActionTokenizer:
+    """``num_bins`` uniform bins per dimension of ``states`` ``[N, D]`` with ``state_differences`` appended,
+    each over its full data range (nothing seen in training is clipped)."""
+    states = append_state_differences(states, state_differences)
+    proprio = UniformBinActionTokenizer(
+        UniformBinActionTokenizerConfig(action_dim=states.shape[-1], gripper_dims=(), num_bins=num_bins,
+                                        low_quantile=0.0, high_quantile=1.0)
+    )
+    fit_action_tokenizer(proprio, states, progress=False)
+    return proprio
 
 
 def config_dict(cfg: TokenizerFitConfig) -> dict:

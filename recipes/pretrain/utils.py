@@ -57,7 +57,7 @@ def make_tokenizers(cfg: DictConfig, buffers: list[DemoBuffer], run_dir: Path) -
     if directory is None:
         directory = run_dir / "tokenizers"
         if not (directory / "action").exists():
-            fit = TokenizerFitConfig(**{**tcfg, "seed": int(cfg.seed)})
+            fit = TokenizerFitConfig(**{**tcfg, "seed": int(cfg.seed), "state_differences": state_differences(cfg)})
             if "hidden_sizes" in fit.action:  # learned tokenizers only (bins have no network)
                 fit.action["hidden_sizes"] = tuple(fit.action["hidden_sizes"])
             fitted = fit_tokenizers(buffers, fit)
@@ -68,10 +68,21 @@ def make_tokenizers(cfg: DictConfig, buffers: list[DemoBuffer], run_dir: Path) -
         raise ValueError(f"the image tokenizer in {directory} was fitted on {tokenizers.image.config.image_size}px images "
                          f"but the buffer holds {buffer.metadata.image_size}px ones; refit or use matching env.image_size.")
     state_dim = max(b.metadata.state_dim for b in buffers)
+    differences = state_differences(cfg)
+    if tokenizers.proprio is not None and differences and tokenizers.proprio.config.action_dim != state_dim + len(differences):
+        raise ValueError(f"the proprio tokenizer in {directory} covers {tokenizers.proprio.config.action_dim} dimensions, "
+                         f"not the demonstrations' {state_dim} plus the {len(differences)} of model.state_differences="
+                         f"{differences}; fit it with them (tokenizers.dir=null, or `mmada-rl fit-tokenizers "
+                         "--state-differences`).")
     if tokenizers.proprio is not None and tokenizers.proprio.config.action_dim < state_dim:
         raise ValueError(f"the proprio tokenizer in {directory} covers {tokenizers.proprio.config.action_dim} state "
                          f"dimensions but the demonstrations have {state_dim}; fit tokenizers on these tasks.")
     return tokenizers
+
+
+def state_differences(cfg: DictConfig) -> list[list[int]]:
+    """``model.state_differences`` as pairs of ints (absent from older configs: none)."""
+    return [[int(a), int(b)] for a, b in (cfg.model.get("state_differences", None) or [])]
 
 
 def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
@@ -82,6 +93,7 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         use_proprio=bool(m.use_proprio),
         observation_tokens=bool(m.observation_tokens),
         proprio_drop_dims=[int(d) for d in m.proprio_drop_dims],
+        state_differences=state_differences(cfg),
         interleave=bool(m.interleave),
         denoiser=m.denoiser if isinstance(m.denoiser, str) else OmegaConf.to_container(m.denoiser),
         denoiser_overrides=OmegaConf.to_container(m.denoiser_overrides),
