@@ -183,7 +183,7 @@ def test_state_differences_put_the_goal_relative_to_the_gripper_into_the_sequenc
     plain = Tokenizers(relative.text_tokenizer, relative.image_tokenizer, relative.action_tokenizer,
                        build_tiny_model(observations[IMAGE_KEY], states, torch.rand(64, 7) * 2 - 1,
                                         observations[INSTRUCTION_KEY][0]).proprio_tokenizer)
-    with pytest.raises(ValueError, match=r"it covers 29 dimensions, so with 3 differences appended the state has 26"):
+    with pytest.raises(ValueError, match=r"covers 29 dimensions, so with 3 differences appended the state has only 26"):
         MMaDAModel(MMaDAConfig(denoiser="tiny", state_differences=pairs), plain)
     for bad in ([[26]], [[26, 26]], [[-1, 3]]):
         with pytest.raises(ValueError, match="must be pairs"):

@@ -274,9 +274,9 @@ class MMaDAModel(nn.Module):
         self._check_one_token_per_state_dim("state_differences")
         if max(max(pair) for pair in pairs) >= self.state_dim:
             covers = self.proprio_tokenizer.config.action_dim
-            raise ValueError(f"state_differences={pairs} name state dimensions the proprio tokenizer does not leave them: "
-                             f"it covers {covers} dimensions, so with {len(pairs)} differences appended the state has "
-                             f"{self.state_dim}. Fit it on the state with them appended "
+            raise ValueError(f"state_differences={pairs} need a proprio tokenizer fitted with them: this one covers "
+                             f"{covers} dimensions, so with {len(pairs)} differences appended the state has only "
+                             f"{self.state_dim}, fewer than the pairs name. Fit it on the state with them appended "
                              "(TokenizerFitConfig.state_differences, `mmada-rl fit-tokenizers --state-differences`).")
 
     def _proprio_index(self) -> torch.Tensor:
@@ -347,11 +347,10 @@ class MMaDAModel(nn.Module):
         if self.proprio_tokenizer is not None:
             # a multi-task model's tokenizer spans the largest state; smaller task states are zero-padded
             state = td.get(STATE_KEY)
-            if state.shape[-1] > self.state_dim:
-                raise ValueError(
-                    f"the state has {state.shape[-1]} dimensions but the proprio tokenizer covers {self.state_dim}"
-                    + (f" before the {len(self.config.state_differences)} state_differences" if self.config.state_differences
-                       else "") + ": fit the tokenizers with the model's state_differences on these tasks' states.")
+            if state.shape[-1] > self.state_dim and self.config.state_differences:
+                raise ValueError(f"the state has {state.shape[-1]} dimensions but the proprio tokenizer covers "
+                                 f"{self.state_dim} before the {len(self.config.state_differences)} state_differences: "
+                                 "fit it with the model's state_differences on these tasks' states.")
             state = append_state_differences(pad_state(state, self.state_dim), self.config.state_differences)
             with warnings.catch_warnings():
                 # states beyond the demonstrations' range are clipped to the edge bins at every step
