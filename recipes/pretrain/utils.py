@@ -6,6 +6,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer
+from mmada_rl.data.windows import check_state_differences
 from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY
@@ -81,8 +82,8 @@ def make_tokenizers(cfg: DictConfig, buffers: list[DemoBuffer], run_dir: Path) -
 
 
 def state_differences(cfg: DictConfig) -> list[list[int]]:
-    """``model.state_differences`` as pairs of ints (absent from older configs: none)."""
-    return [[int(a), int(b)] for a, b in (cfg.model.get("state_differences", None) or [])]
+    """``model.state_differences`` as checked pairs of ints (absent from older configs: none)."""
+    return check_state_differences(cfg.model.get("state_differences", None))
 
 
 def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
