@@ -15,7 +15,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from mmada_rl.data import BufferMismatchError, DemoBuffer, RandomShift, make_window_buffer
-from mmada_rl.data.windows import idle_actions
+from mmada_rl.data.windows import LIFT_ACTION_DIM, grasp_holds, idle_actions
 from mmada_rl.data.collect import collect
 from mmada_rl.data.h5_import import import_h5
 from mmada_rl.data.metadata import BufferMetadata
@@ -236,6 +236,31 @@ def test_skip_pauses_draws_no_window_at_the_planners_pauses_mid_episode(state_de
     _check_windows_of(batch[:200], buf, chunk_size=5)
     with pytest.raises(ValueError, match="skip_pauses=-0.1 must be >= 0"):
         make_window_buffer(buf, 5, 8, skip_pauses=-0.1)
+
+
+def test_skip_grasp_hold_draws_no_window_between_the_gripper_close_and_the_lift(state_demos, push_demos):
+    buf = DemoBuffer.open(state_demos)
+    bounds = buf.episode_bounds()
+    actions = buf.storage[: len(buf)].get("action")
+    held = grasp_holds(buf, lift=0.05)
+    for a, b in bounds:
+        steps = held[a:b].nonzero().reshape(-1)
+        assert steps.numel() >= 3 and (steps == torch.arange(int(steps[0]), int(steps[-1]) + 1)).all()  # one run
+        close, lift = a + int(steps[0]), a + int(steps[-1]) + 1
+        assert actions[close - 1, -1] >= 0 > actions[close, -1]  # it starts where the gripper closes
+        assert (actions[lift:lift + 3, LIFT_ACTION_DIM] > 0.05).all()  # and ends where the arm rises
+        assert not any((actions[t:t + 3, LIFT_ACTION_DIM] > 0.05).all() for t in range(close, lift))  # the first rise
+    batch = make_window_buffer(buf, 5, 2000, seed=0, skip_grasp_hold=0.05).sample()
+    starts = {(int(e), int(t)) for e, t in zip(batch[EPISODE_KEY], batch[STEP_KEY].reshape(-1))}
+    episode = buf.storage[: len(buf)].get(EPISODE_KEY)
+    assert starts == {(int(episode[a]), t) for a, b in bounds for t in range(b - a) if not held[a + t]}
+    _check_windows_of(batch[:200], buf, chunk_size=5)
+    assert not grasp_holds(DemoBuffer.open(push_demos), lift=0.05).any()  # PushCube-v1's gripper never opens
+    with pytest.raises(ValueError, match="skip_grasp_hold=-1 must be >= 0"):
+        make_window_buffer(buf, 5, 8, skip_grasp_hold=-1)
+    buf.metadata.control_mode = "pd_joint_delta_pos"
+    with pytest.raises(ValueError, match="end-effector delta action's z entry.*'pd_joint_delta_pos'"):
+        make_window_buffer(buf, 5, 8, skip_grasp_hold=0.05)
 
 
 def test_an_episode_that_only_holds_keeps_its_last_step_as_a_start(tmp_path):

@@ -379,20 +379,21 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
     checkpoint = tmp_path / "checkpoint"  # a pretraining checkpoint whose run skipped the idle starts and pauses
     checkpoint.mkdir()
     (checkpoint / "model").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
-    (checkpoint / "config.json").write_text(json.dumps({"data": {"skip_idle_start": True, "skip_pauses": 0.01}}))
+    (checkpoint / "config.json").write_text(json.dumps({"data": {"skip_idle_start": True, "skip_pauses": 0.01,
+                                                                 "skip_grasp_hold": 0.05}}))
     cfg = OmegaConf.create({"seed": 0, "pretrained": str(checkpoint), "demos": {"ratio": 1.0, "skip_idle_start": None,
-                            "skip_pauses": None}, "replay_buffer": {"batch_size": 8}})
-    assert utils.demo_window_skips(cfg) == {"skip_idle_start": True, "skip_pauses": 0.01}
+                            "skip_pauses": None, "skip_grasp_hold": None}, "replay_buffer": {"batch_size": 8}})
+    assert utils.demo_window_skips(cfg) == {"skip_idle_start": True, "skip_pauses": 0.01, "skip_grasp_hold": 0.05}
     overridden = OmegaConf.merge(cfg, {"demos": {"skip_pauses": 0.0}})
-    assert utils.demo_window_skips(overridden) == {"skip_idle_start": True, "skip_pauses": 0.0}
+    assert utils.demo_window_skips(overridden) == {"skip_idle_start": True, "skip_pauses": 0.0, "skip_grasp_hold": 0.05}
     (tmp_path / "saved").mkdir()  # a model saved on its own, without a run's config beside it
     (tmp_path / "saved" / "policy").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
     bare = OmegaConf.merge(cfg, {"pretrained": str(tmp_path / "saved" / "policy")})
-    assert utils.demo_window_skips(bare) == {"skip_idle_start": False, "skip_pauses": 0.0}
+    assert utils.demo_window_skips(bare) == {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0}
     assert utils.demo_window_skips(OmegaConf.merge(cfg, {"pretrained": str(toy_pretrain_run)})) == utils.WINDOW_SKIPS
 
     demos = DemoBuffer.open(pick_demos)
-    expected = no_start_steps(demos, skip_idle_start=True, skip_pauses=0.01)
+    expected = no_start_steps(demos, skip_idle_start=True, skip_pauses=0.01, skip_grasp_hold=0.05)
     assert expected.any() and not expected.all()
     sampler = utils.make_demo_windows(cfg, demos, model).sampler
     torch.testing.assert_close(sampler.no_start, expected)

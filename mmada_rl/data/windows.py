@@ -28,6 +28,18 @@ within ``ε`` of 0: the PickCube-v1 planner also nearly stops (arm actions
 segments, and a policy that learns "still arm here → stay still" copies the
 pause instead of the motion after it (the copycat problem). Those steps still
 appear inside windows that start before them.
+
+``skip_grasp_hold=ε`` draws no window that starts in the hold after a grasp:
+from an episode's first gripper close (the last action entry turning negative
+after a non-negative one) up to its lift: the first step from which
+:data:`LIFT_RUN` consecutive actions move the end effector up (action entry 2,
+its z) by more than ``ε`` (one such label alone may be DART's correction). The PickCube-v1 planner closes the gripper, whose
+fingers stop after ~3 steps, then keeps the arm near still for a median 9 more
+steps before it lifts; with DART's noise its labels there are small corrections
+(often downwards), so ``skip_pauses`` cannot find them. The state does not
+change in that hold, so a policy that learns "grasped, cube on the table →
+hold" has nothing to leave it by. Episodes that never close the gripper after
+opening it (PushCube-v1's planner keeps it closed) or never lift lose nothing.
 """
 from __future__ import annotations
 
@@ -181,22 +193,59 @@ def leading_run(mask: torch.Tensor, bounds) -> torch.Tensor:
     return out
 
 
-def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float = 0.0) -> torch.Tensor | None:
+#: The z entry of an end-effector delta action (``pd_ee_delta_pos`` / ``pd_ee_delta_pose``).
+LIFT_ACTION_DIM = 2
+#: Consecutive upward actions that make a lift (:func:`grasp_holds`).
+LIFT_RUN = 3
+
+
+def grasp_holds(buffer, lift: float) -> torch.Tensor:
+    """Bool ``[storage size]``: each episode's steps from its first gripper close (the last action entry
+    negative after a non-negative one) up to, not including, its lift: the first step that starts
+    :data:`LIFT_RUN` consecutive actions whose z entry (:data:`LIFT_ACTION_DIM`) exceeds ``lift``;
+    nothing in episodes with no such close or no lift after it."""
+    mode = buffer.metadata.control_mode
+    if not mode.startswith("pd_ee_delta_pos"):
+        raise ValueError(f"skip_grasp_hold finds the lift in an end-effector delta action's z entry; {buffer.path} "
+                         f"holds {mode!r} actions (collect with --control-mode pd_ee_delta_pose), or set it to 0.")
+    actions = buffer.storage[: len(buffer.storage)].get("action")
+    out = torch.zeros(actions.shape[0], dtype=torch.bool)
+    for start, stop in buffer.episode_bounds():
+        gripper, z = actions[start:stop, -1], actions[start:stop, LIFT_ACTION_DIM]
+        closes = ((gripper[1:] < 0) & (gripper[:-1] >= 0)).nonzero()
+        if not closes.numel():
+            continue
+        close = int(closes[0]) + 1
+        up = (z[close:] > lift).float()
+        if up.numel() < LIFT_RUN:
+            continue
+        lifts = (up.unfold(0, LIFT_RUN, 1).sum(-1) == LIFT_RUN).nonzero()
+        if lifts.numel():
+            out[start + close:start + close + int(lifts[0])] = True
+    return out
+
+
+def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float = 0.0,
+                   skip_grasp_hold: float = 0.0) -> torch.Tensor | None:
     """The steps no chunk window may start at (``None``: any step), for :func:`make_window_buffer`'s options."""
-    if skip_pauses < 0:
-        raise ValueError(f"skip_pauses={skip_pauses} must be >= 0 (0: off).")
+    for name, value in (("skip_pauses", skip_pauses), ("skip_grasp_hold", skip_grasp_hold)):
+        if value < 0:
+            raise ValueError(f"{name}={value} must be >= 0 (0: off).")
     masks = []
     if skip_idle_start:
         masks.append(leading_run(idle_actions(buffer), buffer.episode_bounds()))
     if skip_pauses > 0:
         masks.append(idle_actions(buffer, tol=skip_pauses))
+    if skip_grasp_hold > 0:
+        masks.append(grasp_holds(buffer, lift=skip_grasp_hold))
     if not masks:
         return None
     return torch.stack(masks).any(0)
 
 
 def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None,
-                       skip_idle_start: bool = False, skip_pauses: float = 0.0) -> ReplayBuffer:
+                       skip_idle_start: bool = False, skip_pauses: float = 0.0,
+                       skip_grasp_hold: float = 0.0) -> ReplayBuffer:
     """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
 
     Args:
@@ -209,6 +258,8 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             hold actions (:func:`idle_actions`; a motion planner's wait before it moves).
         skip_pauses: draw no window that starts at any step whose arm action (every entry but the
             gripper) is within this of 0 (a planner's pauses, e.g. while the gripper closes); 0: off.
+        skip_grasp_hold: draw no window that starts between an episode's first gripper close and
+            its first action lifting by more than this (:func:`grasp_holds`); 0: off.
 
     Examples:
         >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)
@@ -226,8 +277,9 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             f"chunk_size={chunk_size} is longer than every episode in {buffer.path} "
             f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
         )
-    sampler = ChunkWindowSampler(chunk_size, no_start=no_start_steps(buffer, skip_idle_start=skip_idle_start,
-                                                                     skip_pauses=skip_pauses))
+    no_start = no_start_steps(buffer, skip_idle_start=skip_idle_start, skip_pauses=skip_pauses,
+                              skip_grasp_hold=skip_grasp_hold)
+    sampler = ChunkWindowSampler(chunk_size, no_start=no_start)
     transform = Compose(
         ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
         InstructionLookup(buffer.metadata.instructions),
@@ -321,7 +373,7 @@ class MultiTaskWindows:
             (proportional to stored transitions, as one merged buffer would be)
             or one non-negative weight per buffer.
         seed: seeds the task draw and every member's sampler.
-        skip_idle_start, skip_pauses: as for :func:`make_window_buffer`, in every buffer.
+        skip_idle_start, skip_pauses, skip_grasp_hold: as for :func:`make_window_buffer`, in every buffer.
 
     Examples:
         >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)
@@ -330,7 +382,7 @@ class MultiTaskWindows:
     """
 
     def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None,
-                 skip_idle_start: bool = False, skip_pauses: float = 0.0):
+                 skip_idle_start: bool = False, skip_pauses: float = 0.0, skip_grasp_hold: float = 0.0):
         buffers = list(buffers)
         if not buffers:
             raise ValueError("MultiTaskWindows needs at least one buffer.")
@@ -347,7 +399,8 @@ class MultiTaskWindows:
         self.state_dim = max(b.metadata.state_dim for b in buffers)
         self.members = [
             make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i,
-                               skip_idle_start=skip_idle_start, skip_pauses=skip_pauses)
+                               skip_idle_start=skip_idle_start, skip_pauses=skip_pauses,
+                               skip_grasp_hold=skip_grasp_hold)
             for i, b in enumerate(buffers)
         ]
         self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()

@@ -46,7 +46,8 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
 def make_data(cfg: DictConfig, buffer: DemoBuffer):
     """Chunk-window sampler over the demonstrations (seeded), with random-shift augmentation of the images."""
     data = make_window_buffer(buffer, int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), seed=int(cfg.seed),
-                              skip_idle_start=bool(cfg.data.skip_idle_start), skip_pauses=float(cfg.data.skip_pauses))
+                              skip_idle_start=bool(cfg.data.skip_idle_start), skip_pauses=float(cfg.data.skip_pauses),
+                              skip_grasp_hold=float(cfg.data.skip_grasp_hold))
     if int(cfg.replay_buffer.random_shift) and buffer.metadata.obs_mode == "rgb":
         data.append_transform(RandomShift(int(cfg.replay_buffer.random_shift)))
     return data

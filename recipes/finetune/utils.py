@@ -295,11 +295,11 @@ def split_batch(cfg: DictConfig) -> tuple[int, int]:
 
 
 #: The window options of :func:`make_window_buffer` a fine-tuning run shares with its pretraining, and their "off" values.
-WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0}
+WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0}
 
 
 def demo_window_skips(cfg: DictConfig) -> dict:
-    """``skip_idle_start`` and ``skip_pauses`` of the demonstration windows: ``demos.<option>``, or where that
+    """``skip_idle_start``, ``skip_pauses`` and ``skip_grasp_hold`` of the demonstration windows: ``demos.<option>``, or where that
     is null (the default), the pretraining run's ``data.<option>`` (its checkpoint's ``config.json``), so
     fine-tuning keeps drawing the windows the policy was pretrained on; off for a bare saved model."""
     pretrained = cfg.get("pretrained")

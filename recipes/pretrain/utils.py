@@ -111,7 +111,8 @@ def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
     ``replay_buffer.random_shift`` > 0 the observation image and its goal frame are shifted together."""
     K, batch, seed = int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), int(cfg.seed)
     skips = {"skip_idle_start": bool(cfg.data.get("skip_idle_start", False)),
-             "skip_pauses": float(cfg.data.get("skip_pauses", 0.0))}
+             "skip_pauses": float(cfg.data.get("skip_pauses", 0.0)),
+             "skip_grasp_hold": float(cfg.data.get("skip_grasp_hold", 0.0))}
     if len(buffers) == 1:
         data = make_window_buffer(buffers[0], K, batch, seed=seed, **skips)
     else:
