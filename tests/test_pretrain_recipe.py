@@ -207,6 +207,25 @@ def test_random_shift_option_shifts_the_recipes_training_windows(pick_demos):
         assert sum(moved) >= len(moved) // 2  # 1 offset in 81 leaves a window in place
 
 
+def test_window_skips_reach_the_pretraining_and_imitation_samplers(pick_demos):
+    """``data.skip_*`` of the pretraining and imitation recipes become their samplers' no-start steps."""
+    from omegaconf import OmegaConf
+
+    from mmada_rl.data import DemoBuffer
+    from mmada_rl.data.windows import no_start_steps
+
+    expected = no_start_steps(DemoBuffer.open(pick_demos), skip_pauses=0.01, skip_grasp_hold=0.05)
+    assert expected.any() and not expected.all()
+    for recipe in ("pretrain", "baselines"):
+        utils = load_script(f"recipes/{recipe}/utils.py", f"{recipe}_utils_skips")
+        cfg = OmegaConf.load(REPO / "recipes" / recipe / "config" / "toy.yaml")
+        assert cfg.data.skip_grasp_hold == 0.0 and cfg.data.skip_pauses == 0.0  # off by default
+        cfg.data.dir, cfg.data.collect_episodes = str(pick_demos), 0
+        cfg.data.skip_pauses, cfg.data.skip_grasp_hold = 0.01, 0.05
+        data = utils.make_data(cfg, utils.make_demo_buffers(cfg) if recipe == "pretrain" else DemoBuffer.open(pick_demos))
+        torch.testing.assert_close(data.sampler.no_start, expected)
+
+
 def test_cpu_config_shortens_the_sequence_and_trains(pick_demos, tmp_path):
     """``--config-name maniskill_cpu``: the goal image as 4x4 codes, the observation through the CNN alone,
     no joint velocities, a denoiser of width 128; it composes, fits its tokenizers and trains."""
