@@ -33,9 +33,9 @@ appear inside windows that start before them.
 from an episode's first gripper close (the last action entry turning negative
 after a non-negative one) up to its lift: the first step from which
 :data:`LIFT_RUN` consecutive actions move the end effector up (action entry 2,
-its z) by more than ``ε`` (one such label alone may be DART's correction). The PickCube-v1 planner closes the gripper, whose
-fingers stop after ~3 steps, then keeps the arm near still for a median 9 more
-steps before it lifts; with DART's noise its labels there are small corrections
+its z) by more than ``ε`` (one such label alone may be DART's correction).
+The PickCube-v1 planner closes the gripper, whose fingers stop after ~3 steps,
+then keeps the arm near still for a median 9 more steps before it lifts; with DART's noise its labels there are small corrections
 (often downwards), so ``skip_pauses`` cannot find them. The state does not
 change in that hold, so a policy that learns "grasped, cube on the table →
 hold" has nothing to leave it by. Episodes that never close the gripper after
@@ -259,7 +259,8 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
         skip_pauses: draw no window that starts at any step whose arm action (every entry but the
             gripper) is within this of 0 (a planner's pauses, e.g. while the gripper closes); 0: off.
         skip_grasp_hold: draw no window that starts between an episode's first gripper close and
-            its first action lifting by more than this (:func:`grasp_holds`); 0: off.
+            its lift, the first of three consecutive actions raising the end effector by more than
+            this (:func:`grasp_holds`); 0: off.
 
     Examples:
         >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)
