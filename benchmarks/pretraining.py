@@ -25,6 +25,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
+from mmada_rl.data import window_skips  # noqa: E402
+
 
 def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
     path = run / "logs" / "scalars" / f"{name}.csv"
@@ -58,9 +60,7 @@ def summarize(run: Path) -> dict:
         "predict_goal": bool(config["model"].get("predict_goal", True)),
         "chunk_size": int(config["model"]["chunk_size"]),
         "execute_steps": int(config["eval"]["execute_steps"]),
-        "skip_idle_start": bool(config.get("data", {}).get("skip_idle_start", False)),
-        "skip_pauses": float(config.get("data", {}).get("skip_pauses", 0.0)),
-        "skip_grasp_hold": float(config.get("data", {}).get("skip_grasp_hold", 0.0)),
+        **window_skips(config.get("data", {})),
         "visual_encoder_channels": (config["model"].get("denoiser_overrides") or {}).get("visual_encoder_channels"),
         # from the run's own image tokenizer (it may come from tokenizers.dir, not this run's config)
         "image_foreground_weight": float(json.loads((ckpts[-1] / "model" / "tokenizers" / "image" / "config.json").read_text())
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         options = ((" (no window in the leading hold)" if r["skip_idle_start"] else "")
                    + (f" (no window starting in a pause, {r['skip_pauses']:g})" if r["skip_pauses"] else "")
                    + (f" (no window starting in the hold after a grasp, {r['skip_grasp_hold']:g})"
-                      if r.get("skip_grasp_hold") else "")
+                      if r["skip_grasp_hold"] else "")
                    + (f" (image foreground weight {r['image_foreground_weight']:g})" if r["image_foreground_weight"] != 1 else "")
                    + (f" (cross-attention to CNN features {r['visual_encoder_channels']})" if r["visual_encoder_channels"] else ""))
         if r["per_task"]:
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         ablated = (("" if r["predict_goal"] else ", no goal") + ("" if r["chunk_size"] == 5 else f", K={r['chunk_size']}")
                    + (", skip idle start" if r["skip_idle_start"] else "")
                    + (f", skip pauses {r['skip_pauses']:g}" if r["skip_pauses"] else "")
-                   + (f", skip grasp hold {r['skip_grasp_hold']:g}" if r.get("skip_grasp_hold") else "")
+                   + (f", skip grasp hold {r['skip_grasp_hold']:g}" if r["skip_grasp_hold"] else "")
                    + (f", {r['planned_steps']} steps" if r["planned_steps"] != usual else "")
                    + (f", image fg x{r['image_foreground_weight']:g}" if r["image_foreground_weight"] != 1 else "")
                    + (", CNN cross-attention" if r["visual_encoder_channels"] else ""))

@@ -10,6 +10,7 @@ from mmada_rl.data.windows import (
     make_window_buffer,
     pad_state,
     window_generators,
+    window_skips,
 )
 
 __all__ = [
@@ -25,4 +26,5 @@ __all__ = [
     "pad_state",
     "random_shift",
     "window_generators",
+    "window_skips",
 ]

@@ -225,6 +225,16 @@ def grasp_holds(buffer, lift: float) -> torch.Tensor:
     return out
 
 
+#: The window options of :func:`make_window_buffer` and :class:`MultiTaskWindows`, each with its "off" value.
+WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0}
+
+
+def window_skips(options) -> dict:
+    """:data:`WINDOW_SKIPS` read from a mapping (a recipe's ``data`` config, or its saved ``config.json``'s):
+    each option as the type of its "off" value, off where the mapping lacks it."""
+    return {name: type(off)(options.get(name, off)) for name, off in WINDOW_SKIPS.items()}
+
+
 def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float = 0.0,
                    skip_grasp_hold: float = 0.0) -> torch.Tensor | None:
     """The steps no chunk window may start at (``None``: any step), for :func:`make_window_buffer`'s options."""

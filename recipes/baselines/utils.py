@@ -7,7 +7,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mmada_rl import baselines
 from mmada_rl.baselines import ChunkPolicy, NormalizationStats, RandomShift
-from mmada_rl.data import DemoBuffer, make_window_buffer
+from mmada_rl.data import DemoBuffer, make_window_buffer, window_skips
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl import training
 from mmada_rl.training import WeightEMA, ema_checkpointed, make_optimizer, make_scheduler, save_checkpoint
@@ -46,8 +46,7 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
 def make_data(cfg: DictConfig, buffer: DemoBuffer):
     """Chunk-window sampler over the demonstrations (seeded), with random-shift augmentation of the images."""
     data = make_window_buffer(buffer, int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), seed=int(cfg.seed),
-                              skip_idle_start=bool(cfg.data.skip_idle_start), skip_pauses=float(cfg.data.skip_pauses),
-                              skip_grasp_hold=float(cfg.data.skip_grasp_hold))
+                              **window_skips(cfg.data))
     if int(cfg.replay_buffer.random_shift) and buffer.metadata.obs_mode == "rgb":
         data.append_transform(RandomShift(int(cfg.replay_buffer.random_shift)))
     return data

@@ -18,7 +18,8 @@ from torchrl.objectives.value import GAE
 from mmada_rl import training
 from mmada_rl.baselines import NormalizationStats
 from mmada_rl.baselines.encoders import EncoderConfig
-from mmada_rl.data import DemoBuffer, make_window_buffer
+from mmada_rl.data import DemoBuffer, make_window_buffer, window_skips
+from mmada_rl.data.windows import WINDOW_SKIPS
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig, make_env
@@ -294,22 +295,15 @@ def split_batch(cfg: DictConfig) -> tuple[int, int]:
     return total - demo, demo
 
 
-#: The window options of :func:`make_window_buffer` a fine-tuning run shares with its pretraining, and their "off" values.
-WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0}
-
-
 def demo_window_skips(cfg: DictConfig) -> dict:
-    """``skip_idle_start``, ``skip_pauses`` and ``skip_grasp_hold`` of the demonstration windows: ``demos.<option>``, or where that
-    is null (the default), the pretraining run's ``data.<option>`` (its checkpoint's ``config.json``), so
-    fine-tuning keeps drawing the windows the policy was pretrained on; off for a bare saved model."""
+    """The window options (:data:`~mmada_rl.data.windows.WINDOW_SKIPS`) of the demonstration windows: ``demos.<option>``,
+    or where that is null (the default), the pretraining run's ``data.<option>`` (its checkpoint's ``config.json``),
+    so fine-tuning keeps drawing the windows the policy was pretrained on; off for a bare saved model."""
     pretrained = cfg.get("pretrained")
     saved = resolve_model_dir(pretrained).parent / CONFIG_FILE if pretrained is not None else None
     data = json.loads(saved.read_text()).get("data", {}) if saved is not None and saved.is_file() else {}
-    options = {}
-    for name, off in WINDOW_SKIPS.items():
-        value = cfg.demos.get(name)
-        options[name] = type(off)(data.get(name, off) if value is None else value)
-    return options
+    given = {name: cfg.demos.get(name) for name in WINDOW_SKIPS}
+    return window_skips({**data, **{name: value for name, value in given.items() if value is not None}})
 
 
 def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer
+from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer, window_skips
 from mmada_rl.data.windows import check_state_differences
 from mmada_rl.diffusion import UniformNoiseSchedule
 from mmada_rl.envs.maniskill import EnvConfig
@@ -110,9 +110,7 @@ def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
     with several tasks, every batch mixes their windows (``data.task_weights``). With
     ``replay_buffer.random_shift`` > 0 the observation image and its goal frame are shifted together."""
     K, batch, seed = int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), int(cfg.seed)
-    skips = {"skip_idle_start": bool(cfg.data.get("skip_idle_start", False)),
-             "skip_pauses": float(cfg.data.get("skip_pauses", 0.0)),
-             "skip_grasp_hold": float(cfg.data.get("skip_grasp_hold", 0.0))}
+    skips = window_skips(cfg.data)
     if len(buffers) == 1:
         data = make_window_buffer(buffers[0], K, batch, seed=seed, **skips)
     else:
