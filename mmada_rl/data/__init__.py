@@ -3,6 +3,7 @@ from mmada_rl.data.augment import RandomShift, random_shift
 from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.windows import (
+    WINDOW_SKIPS,
     ChunkWindowSampler,
     ChunkWindowTransform,
     MultiTaskWindows,
@@ -14,6 +15,7 @@ from mmada_rl.data.windows import (
 )
 
 __all__ = [
+    "WINDOW_SKIPS",
     "BufferMetadata",
     "BufferMismatchError",
     "ChunkWindowSampler",

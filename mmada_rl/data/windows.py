@@ -35,10 +35,11 @@ after a non-negative one) up to its lift: the first step from which
 :data:`LIFT_RUN` consecutive actions move the end effector up (action entry 2,
 its z) by more than ``ε`` (one such label alone may be DART's correction).
 The PickCube-v1 planner closes the gripper, whose fingers stop after ~3 steps,
-then keeps the arm near still for a median 9 more steps before it lifts; with DART's noise its labels there are small corrections
-(often downwards), so ``skip_pauses`` cannot find them. The state does not
-change in that hold, so a policy that learns "grasped, cube on the table →
-hold" has nothing to leave it by. Episodes that never close the gripper after
+then keeps the arm near still for a median 9 more steps before it lifts; with
+DART's noise its labels there are small corrections (often downwards), so
+``skip_pauses`` cannot find them. The state does not change in that hold, so a
+policy that learns "grasped, cube on the table → hold" has nothing to leave it
+by. Episodes that never close the gripper after
 opening it (PushCube-v1's planner keeps it closed) or never lift lose nothing.
 """
 from __future__ import annotations

@@ -18,8 +18,7 @@ from torchrl.objectives.value import GAE
 from mmada_rl import training
 from mmada_rl.baselines import NormalizationStats
 from mmada_rl.baselines.encoders import EncoderConfig
-from mmada_rl.data import DemoBuffer, make_window_buffer, window_skips
-from mmada_rl.data.windows import WINDOW_SKIPS
+from mmada_rl.data import WINDOW_SKIPS, DemoBuffer, make_window_buffer, window_skips
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig, make_env
