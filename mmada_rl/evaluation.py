@@ -13,7 +13,9 @@ Protocol (ManiSkill's): every episode runs to the task's ``max_episode_steps``
 with ``ignore_terminations=True`` so that both ``success_once`` (success at any
 step) and ``success_at_end`` (success at the last step) are measured; decoding
 is greedy (``ExplorationType.DETERMINISTIC``); rates come with 95% Wilson score
-intervals.
+intervals. Fine-tuning's two exploration policies can be measured the same way:
+tokens sampled at a temperature (``--sample-temperature``) or the greedy chunks
+executed with Gaussian noise on the arm's actions (``--action-noise``).
 
 Seeds: episode ``i`` is reset with seed ``EVAL_SEED_BASE + seed_offset + i``
 (``EVAL_SEED_BASE = 1_000_000``). Demonstrations and training envs use seeds
@@ -48,7 +50,7 @@ from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
 from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
-from mmada_rl.policy.execution import PolicyEnv, make_policy_env
+from mmada_rl.policy.execution import ExecutionNoise, PolicyEnv, make_policy_env
 from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
 __all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "episode_seeds",
@@ -166,6 +168,7 @@ class EvalResult:
     per_episode: list[EpisodeResult] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
     sample_temperature: float = 0.0  # 0: greedy decoding; > 0: tokens sampled at this temperature
+    action_noise: float = 0.0  # > 0: greedy chunks executed with N(0, action_noise^2) on the arm's actions
     action_readout: str | None = None  # MMaDA-VLA: "token" or "mean" (MMaDAConfig.action_readout); None for baselines
     checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
     demo_seeds: str | None = None  # the buffer whose demonstrations' seeds were run (None: evaluation seeds)
@@ -189,6 +192,7 @@ class EvalResult:
                 f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps}"
                 f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'}"
                 f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''}"
+                f"{f' + N(0, {self.action_noise:g}^2) on the arm actions' if self.action_noise else ''}"
                 f"{on_demos} (95% Wilson CI)")
         lines = [head, "", "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
         return "\n".join(lines)
@@ -274,6 +278,7 @@ def evaluate(
     temporal_ensemble: bool = False,
     num_denoise_steps: int | None = None,
     sample_temperature: float | None = None,
+    action_noise: float | None = None,
     action_readout: str | None = None,
     max_episode_steps: int | None = None,
     control_mode: str = "pd_ee_delta_pose",
@@ -306,6 +311,11 @@ def evaluate(
             Every episode draws from torch's RNG seeded with its env seed, so a
             sampled evaluation (or a Diffusion Policy's) repeats exactly; the
             caller's RNG state is left as it was.
+        action_noise: MMaDA policies only: execute the greedy chunks with
+            ``N(0, action_noise^2)`` noise on the arm's actions
+            (:class:`~mmada_rl.policy.ExecutionNoise`): the exploration policy of
+            fine-tuning with ``collector.action_noise``. The noise is drawn from
+            torch's RNG seeded with each episode's env seed, as sampled tokens are.
         action_readout: MMaDA policies only: ``"token"`` or ``"mean"``, how greedy chunks
             become actions (:attr:`~mmada_rl.policy.MMaDAConfig.action_readout`;
             ``None``: the policy's own).
@@ -333,6 +343,12 @@ def evaluate(
     if sample_temperature is not None and (mmada is None or not sample_temperature > 0):
         raise ValueError("sample_temperature needs an MMaDA-VLA policy and a value > 0 "
                          f"(got {sample_temperature!r} for a {type(actor).__name__}).")
+    if action_noise is not None and (mmada is None or not action_noise > 0):
+        raise ValueError("action_noise needs an MMaDA-VLA policy and a value > 0 "
+                         f"(got {action_noise!r} for a {type(actor).__name__}).")
+    if action_noise is not None and (sample_temperature is not None or temporal_ensemble):
+        raise ValueError("action_noise perturbs greedy chunks executed whole: it does not combine with "
+                         "sample_temperature or temporal_ensemble.")
     if action_readout is not None and mmada is None:
         raise ValueError(f"action_readout needs an MMaDA-VLA policy (got a {type(actor).__name__}).")
     penv, readout = None, None  # readout: the MMaDA policy's action read-out in this evaluation
@@ -350,6 +366,8 @@ def evaluate(
             cfg, actor, execute_steps=execute_steps, temporal_ensemble=temporal_ensemble,
             log_keys=[IMAGE_KEY, SUCCESS_KEY, STEP_KEY],
         )  # fmt: skip
+        if action_noise is not None:  # the policy's greedy chunks, perturbed; the noise draws from the seeded global RNG
+            penv = penv._replace(policy=ExecutionNoise(penv.policy, action_noise))
         env_dim = int(penv.env.action_spec.shape[-1])
         if env_dim != penv.actor.action_dim:
             raise ValueError(f"{task} with control_mode={control_mode!r} takes {env_dim}-d actions but the policy "
@@ -389,6 +407,7 @@ def evaluate(
         decode_ms_mean=float(latencies.mean()), decode_ms_p95=float(np.percentile(latencies, 95)),
         env_steps_per_second=sum(r.steps for r in results) / seconds,
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
+        action_noise=float(action_noise or 0.0),
         action_readout=readout,
         checkpoint=str(model) if isinstance(model, (str, Path)) else None,
         demo_seeds=None if demo_seeds is None else str(demo_seeds),
@@ -483,6 +502,9 @@ def add_parser(sub) -> None:
     p.add_argument("--sample-temperature", type=float, default=None,
                    help="MMaDA-VLA only: sample the action tokens at this temperature instead of greedy decoding "
                    "(how good the exploration policy of fine-tuning is; default: greedy).")
+    p.add_argument("--action-noise", type=float, default=None, metavar="STD",
+                   help="MMaDA-VLA only: execute the greedy chunks with Gaussian noise of this std on the arm's "
+                   "actions (the exploration policy of fine-tuning with collector.action_noise; default: none).")
     p.add_argument("--action-readout", choices=ACTION_READOUTS, default=None,
                    help="MMaDA-VLA with uniform-bin action tokens only: how a greedy chunk becomes actions; 'token': the "
                    "committed bins' centres, 'mean': each dimension's expected value under the distribution its token was "
@@ -512,7 +534,8 @@ def _run_eval(args: argparse.Namespace) -> int:
             model_dir, args.task, args.episodes, seed_offset=args.seed_offset, demo_seeds=args.demo_seeds,
             execute_steps=args.execute_steps,
             temporal_ensemble=args.temporal_ensemble, num_denoise_steps=args.num_denoise_steps,
-            sample_temperature=args.sample_temperature, action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
+            sample_temperature=args.sample_temperature, action_noise=args.action_noise,
+            action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
             out_dir=args.out or Path(args.checkpoint) / "eval", video=args.video, goal_grid=args.goal_grid,
             device=args.device, progress=not args.no_progress,
         )  # fmt: skip

@@ -185,6 +185,48 @@ def test_sampled_evaluation_decodes_with_sampling_at_the_given_temperature(model
         evaluate(model, "PickCube-v1", 1, sample_temperature=0.0)
 
 
+def test_noisy_evaluation_executes_the_greedy_chunks_with_seeded_noise(monkeypatch):
+    """``action_noise`` evaluates fine-tuning's exploration policy: the greedy chunk with Gaussian noise on the arm's
+    actions (the gripper's left alone), the same noise for the same episode seed, and clear errors otherwise."""
+    from mmada_rl.policy import ExecutionNoise, MMaDAActor
+
+    greedy_chunks, executed, original_actor, original_noise = [], [], MMaDAActor.forward, ExecutionNoise.forward
+
+    def actor_recording(self, td, *args, **kwargs):
+        out = original_actor(self, td, *args, **kwargs)
+        greedy_chunks.append(out.get(self.tensor_keys.action_chunk).clone())
+        return out
+
+    def noise_recording(self, td, *args, **kwargs):
+        out = original_noise(self, td, *args, **kwargs)
+        executed.append(out.get("action").clone())
+        return out
+
+    monkeypatch.setattr(MMaDAActor, "forward", actor_recording)
+    monkeypatch.setattr(ExecutionNoise, "forward", noise_recording)
+    gen = torch.Generator().manual_seed(0)  # uniform bins: the noisy chunk re-tokenized keeps its noise (a VQ code would snap back)
+    model = build_tiny_model(torch.randint(0, 256, (16, 3, 64, 64), dtype=torch.uint8, generator=gen),
+                             torch.randn(64, 29, generator=gen), torch.rand(64, 7, generator=gen) * 2 - 1,
+                             task_spec("PickCube-v1").instruction, action_tokens="bins")
+    runs = []
+    for offset in (0, 0, 1):
+        greedy_chunks.clear(), executed.clear()
+        result = evaluate(model, "PickCube-v1", 1, seed_offset=offset, max_episode_steps=4, execute_steps=2,
+                          action_noise=0.2, progress=False)
+        first = greedy_chunks[1][..., :2, :]  # after the warm-up decode: the first decision's greedy actions
+        moved = (executed[0] - first).abs()
+        assert moved[..., :-1].max() > 0.02 and moved[..., -1].max() < 0.02  # arm perturbed (gripper: re-binned only)
+        runs.append(torch.cat(executed))
+    assert torch.equal(runs[0], runs[1]) and not torch.equal(runs[0], runs[2])
+    assert result.action_noise == 0.2 and "N(0, 0.2^2)" in result.table()
+    assert result.to_dict()["eval/action_noise"] == 0.2
+    for bad, match in (({"action_noise": 0.0}, "action_noise needs"),
+                       ({"action_noise": 0.1, "sample_temperature": 1.0}, "does not combine"),
+                       ({"action_noise": 0.1, "temporal_ensemble": True}, "does not combine")):
+        with pytest.raises(ValueError, match=match):
+            evaluate(model, "PickCube-v1", 1, **bad)
+
+
 def test_mean_readout_is_switched_for_one_evaluation(model_dir, tmp_path):
     """``evaluate(..., action_readout="mean")`` decodes greedy chunks by their expected bins for that run only,
     says so in its outputs, and refuses policies whose action codes have no mean."""
@@ -217,6 +259,7 @@ def test_cli_help_and_missing_checkpoint(run_cli, tmp_path, capsys):
     done = run_cli("eval", "--help", timeout=120)
     assert done.returncode == 0 and "--execute-steps" in done.stdout and "--temporal-ensemble" in done.stdout
     assert "--action-readout {token,mean}" in done.stdout and "--demo-seeds BUFFER" in done.stdout
+    assert "--action-noise STD" in done.stdout
     assert main(["eval", "--checkpoint", str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("mmada-rl eval: error: no MMaDA policy at") and "\n" not in err
