@@ -12,6 +12,8 @@ A source is either an ``eval.json`` written by ``mmada-rl eval`` or a training r
 logged at step S with ``RUN@S``, e.g. ``runs/push300_pdrop_s0@5000``). ``RUN@raw`` (or ``RUN@S@raw``)
 reads the evaluation of the optimizer's own weights that a pretraining run with ``ema.enabled=true
 ema.evaluate_raw=true`` logs beside its weight average's (``eval_raw/...``; ``RUN`` alone: the average).
+A fine-tuning run (``recipes/finetune``, e.g. one of ``benchmarks/compare``'s) is read from its
+``eval_history.json``: its last evaluation, or with ``RUN@S`` the one at ``S`` online env steps.
 For every group: each seed's ``success_once`` with its 95% Wilson interval, the mean and
 standard deviation over seeds, and the episodes of all seeds pooled (successes / trials,
 with their Wilson interval). Sources of one group must have been evaluated on the same
@@ -76,6 +78,8 @@ def read_source(source: Path) -> dict:
         seed = _run_seed(Path(checkpoint)) if checkpoint and Path(checkpoint).is_dir() else None
         row = {"seed": seed, "step": None, "episodes": episodes, "success_once": float(data["eval/success_once"]),
                "success_at_end": float(data["eval/success_at_end"])}
+    elif source.is_dir() and (source / "eval_history.json").is_file():
+        row = _finetune_evaluation(source, at_step, prefix)
     elif source.is_dir():
         evaluations = read_evaluations(source, prefix)
         if not evaluations:
@@ -93,8 +97,28 @@ def read_source(source: Path) -> dict:
                "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end")}
     else:
         raise FileNotFoundError(f"{source}: neither an eval.json nor a run directory.")
+    if row["episodes"] < 1:
+        raise ValueError(f"{label}: the evaluation logs no episode count, so its successes cannot be pooled.")
     row["successes"] = round(row["success_once"] * row["episodes"])
     return {"source": str(label), **row}
+
+
+def _finetune_evaluation(run: Path, at_step: int | None, prefix: str) -> dict:
+    """A fine-tuning run's evaluation from its ``eval_history.json`` (steps are online env steps)."""
+    if prefix != "eval":
+        raise ValueError(f"{run} is a fine-tuning run: it evaluates one set of weights (no @raw).")
+    history = json.loads((run / "eval_history.json").read_text())
+    if not history:
+        raise ValueError(f"{run}/eval_history.json holds no evaluation.")
+    if at_step is None:
+        chosen = history[-1]
+    else:
+        chosen = next((e for e in history if e["env_steps"] == at_step), None)
+        if chosen is None:
+            logged = ", ".join(str(e["env_steps"]) for e in history)
+            raise ValueError(f"{run} logged no evaluation at env step {at_step} (it logged: {logged}).")
+    return {"seed": _run_seed(run), "step": chosen["env_steps"], "episodes": int(chosen["episodes"]),
+            "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end")}
 
 
 def summarize_group(label: str, sources: list[Path]) -> dict:

@@ -478,6 +478,21 @@ def test_rwr_recipe_collects_updates_evaluates_and_checkpoints(rwr_run):
     assert ckpts[-1] == "step_00000003"
 
 
+def test_seed_report_reads_a_fine_tuning_run_from_its_eval_history(rwr_run, tmp_path):
+    seeds = load_script("benchmarks/seeds.py")
+    history = json.loads((rwr_run / "eval_history.json").read_text())
+    assert seeds.main(["--group", "fine-tuned", str(rwr_run), "--group", "at start", f"{rwr_run}@0",
+                       "--name", "ft", "--out", str(tmp_path)]) == 0
+    last, first = (g["seeds"][0] for g in json.loads((tmp_path / "ft.json").read_text())["groups"])
+    assert (last["step"], last["episodes"], last["success_once"]) == (30, 1, history[-1]["success_once"])
+    assert first["step"] == 0 and first["success_once"] == history[0]["success_once"]
+    assert last["seed"] == 0  # the run's own seed, from its checkpoint's config
+    with pytest.raises(ValueError, match=r"no evaluation at env step 7 \(it logged: 0, 30\)"):
+        seeds.main(["--group", "x", f"{rwr_run}@7", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match="no @raw"):
+        seeds.main(["--group", "x", f"{rwr_run}@raw", "--out", str(tmp_path)])
+
+
 def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
     import shutil
 
