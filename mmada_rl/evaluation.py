@@ -111,7 +111,10 @@ def wilson_interval(successes: int, trials: int, z: float = _Z95) -> Interval:
     denom = 1.0 + z2 / trials
     center = (p + z2 / (2 * trials)) / denom
     half = z * math.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials)) / denom
-    return Interval(max(0.0, center - half), min(1.0, center + half))
+    # at 0 or all successes the bound is exactly 0 or 1 (centre - half rounds to about +-1e-17 there)
+    low = 0.0 if successes == 0 else max(0.0, center - half)
+    high = 1.0 if successes == trials else min(1.0, center + half)
+    return Interval(low, high)
 
 
 def resolve_model_dir(path: str | Path) -> Path:

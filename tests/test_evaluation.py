@@ -81,6 +81,7 @@ def test_wilson_interval_matches_hand_computation():
     assert low == pytest.approx(0.39677, abs=1e-4) and high == pytest.approx(0.89220, abs=1e-4)
     assert wilson_interval(0, 2) == pytest.approx((0.0, 0.65762), abs=1e-4)
     assert wilson_interval(0, 0) == (0.0, 1.0)
+    assert wilson_interval(0, 50).low == 0.0 and wilson_interval(50, 50).high == 1.0  # exact, not +-1e-17
     with pytest.raises(ValueError, match="successes=3, trials=2"):
         wilson_interval(3, 2)
 
