@@ -78,21 +78,15 @@ def read_source(source: Path) -> dict:
         seed = _run_seed(Path(checkpoint)) if checkpoint and Path(checkpoint).is_dir() else None
         row = {"seed": seed, "step": None, "episodes": episodes, "success_once": float(data["eval/success_once"]),
                "success_at_end": float(data["eval/success_at_end"])}
-    elif source.is_dir() and (source / "eval_history.json").is_file():
-        row = _finetune_evaluation(source, at_step, prefix)
     elif source.is_dir():
-        evaluations = read_evaluations(source, prefix)
-        if not evaluations:
-            hint = " (a pretraining run logs it with ema.enabled=true ema.evaluate_raw=true)" if prefix == "eval_raw" else ""
-            raise ValueError(f"{source} logged no evaluation (logs/scalars/{prefix}/success_once.csv is missing or "
-                             f"empty){hint}.")
+        evaluations, unit = _run_evaluations(source, prefix)
         if at_step is None:
             chosen = evaluations[-1]
         else:
             chosen = next((e for e in evaluations if e["step"] == at_step), None)
             if chosen is None:
                 logged = ", ".join(str(e["step"]) for e in evaluations)
-                raise ValueError(f"{source} logged no evaluation at step {at_step} (it logged: {logged}).")
+                raise ValueError(f"{source} logged no evaluation at {unit} {at_step} (it logged: {logged}).")
         row = {"seed": _run_seed(source), "step": chosen["step"], "episodes": int(chosen.get("episodes", 0)),
                "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end")}
     else:
@@ -103,22 +97,22 @@ def read_source(source: Path) -> dict:
     return {"source": str(label), **row}
 
 
-def _finetune_evaluation(run: Path, at_step: int | None, prefix: str) -> dict:
-    """A fine-tuning run's evaluation from its ``eval_history.json`` (steps are online env steps)."""
-    if prefix != "eval":
-        raise ValueError(f"{run} is a fine-tuning run: it evaluates one set of weights (no @raw).")
-    history = json.loads((run / "eval_history.json").read_text())
-    if not history:
-        raise ValueError(f"{run}/eval_history.json holds no evaluation.")
-    if at_step is None:
-        chosen = history[-1]
-    else:
-        chosen = next((e for e in history if e["env_steps"] == at_step), None)
-        if chosen is None:
-            logged = ", ".join(str(e["env_steps"]) for e in history)
-            raise ValueError(f"{run} logged no evaluation at env step {at_step} (it logged: {logged}).")
-    return {"seed": _run_seed(run), "step": chosen["env_steps"], "episodes": int(chosen["episodes"]),
-            "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end")}
+def _run_evaluations(run: Path, prefix: str) -> tuple[list[dict], str]:
+    """A run directory's evaluations by step, and what its steps count: a fine-tuning run's from its
+    ``eval_history.json`` (online env steps), a pretraining or imitation run's from its logs (updates)."""
+    if (run / "eval_history.json").is_file():
+        if prefix != "eval":
+            raise ValueError(f"{run} is a fine-tuning run: it evaluates one set of weights (no @raw).")
+        evaluations = [{**e, "step": e["env_steps"]} for e in json.loads((run / "eval_history.json").read_text())]
+        if not evaluations:
+            raise ValueError(f"{run}/eval_history.json holds no evaluation.")
+        return evaluations, "env step"
+    evaluations = read_evaluations(run, prefix)
+    if not evaluations:
+        hint = " (a pretraining run logs it with ema.enabled=true ema.evaluate_raw=true)" if prefix == "eval_raw" else ""
+        raise ValueError(f"{run} logged no evaluation (logs/scalars/{prefix}/success_once.csv is missing or "
+                         f"empty){hint}.")
+    return evaluations, "step"
 
 
 def summarize_group(label: str, sources: list[Path]) -> dict:
