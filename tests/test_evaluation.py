@@ -16,15 +16,19 @@ from script_loader import load_script
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
 
 
-@pytest.fixture(scope="module")
-def model_dir(tmp_path_factory):
-    """A tiny policy saved by ``MMaDAModel.save`` (tokenizers fitted on random data: no env needed)."""
+def tiny_policy(action_tokens: str = "vq"):
+    """A tiny PickCube-v1 policy whose tokenizers are fitted on seeded random data (no env needed)."""
     gen = torch.Generator().manual_seed(0)
     images = torch.randint(0, 256, (16, 3, 64, 64), dtype=torch.uint8, generator=gen)
     states = torch.randn(64, 29, generator=gen)
     actions = torch.rand(64, 7, generator=gen) * 2 - 1
-    model = build_tiny_model(images, states, actions, task_spec("PickCube-v1").instruction)
-    return model.save(tmp_path_factory.mktemp("policy") / "model")
+    return build_tiny_model(images, states, actions, task_spec("PickCube-v1").instruction, action_tokens=action_tokens)
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    """A tiny policy (VQ action codes) saved by ``MMaDAModel.save``."""
+    return tiny_policy().save(tmp_path_factory.mktemp("policy") / "model")
 
 
 def load_benchmark(name: str):
@@ -205,10 +209,7 @@ def test_noisy_evaluation_executes_the_greedy_chunks_with_seeded_noise(monkeypat
 
     monkeypatch.setattr(MMaDAActor, "forward", actor_recording)
     monkeypatch.setattr(ExecutionNoise, "forward", noise_recording)
-    gen = torch.Generator().manual_seed(0)  # uniform bins: the noisy chunk re-tokenized keeps its noise (a VQ code would snap back)
-    model = build_tiny_model(torch.randint(0, 256, (16, 3, 64, 64), dtype=torch.uint8, generator=gen),
-                             torch.randn(64, 29, generator=gen), torch.rand(64, 7, generator=gen) * 2 - 1,
-                             task_spec("PickCube-v1").instruction, action_tokens="bins")
+    model = tiny_policy("bins")  # uniform bins: the noisy chunk re-tokenized keeps its noise (a VQ code would snap back)
     runs = []
     for offset in (0, 0, 1):
         greedy_chunks.clear(), executed.clear()
@@ -234,10 +235,7 @@ def test_mean_readout_is_switched_for_one_evaluation(model_dir, tmp_path):
     from mmada_rl.diffusion.sampler import MaskedDiffusionSampler
     from mmada_rl.policy import MMaDAModel
 
-    gen = torch.Generator().manual_seed(0)
-    model = build_tiny_model(torch.randint(0, 256, (16, 3, 64, 64), dtype=torch.uint8, generator=gen),
-                             torch.randn(64, 29, generator=gen), torch.rand(64, 7, generator=gen) * 2 - 1,
-                             task_spec("PickCube-v1").instruction, action_tokens="bins")
+    model = tiny_policy("bins")
     asked, original = [], MaskedDiffusionSampler.sample
 
     def recording(self, *args, action_probs=False, **kwargs):
