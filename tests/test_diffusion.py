@@ -20,7 +20,7 @@ from mmada_rl.diffusion import (
     masked_counts,
     path_log_prob,
 )
-from mmada_rl.diffusion.schedules import CosineNoiseSchedule, UniformNoiseSchedule
+from mmada_rl.diffusion.schedules import CosineNoiseSchedule, FullMaskMixture, UniformNoiseSchedule
 from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import gaussian_bin_targets
@@ -64,7 +64,8 @@ def tiny(layout, **overrides):
 
 # -- forward process -------------------------------------------------------------
 @pytest.mark.parametrize("kernel", ["absorbing", "uniform"])
-@pytest.mark.parametrize("schedule", [UniformNoiseSchedule(), CosineNoiseSchedule()], ids=["uniform", "cosine"])
+@pytest.mark.parametrize("schedule", [UniformNoiseSchedule(), CosineNoiseSchedule(), FullMaskMixture(CosineNoiseSchedule())],
+                         ids=["uniform", "cosine", "full_mask_mixture"])
 def test_corrupt_only_targets(kernel, schedule):
     layout = make_layout()
     clean = make_batch(layout, batch=64)
@@ -98,6 +99,28 @@ def test_corrupt_condition_masking_and_schedule_validation():
         UniformNoiseSchedule(0.9, 0.5)
     with pytest.raises(ValueError, match="noise kernel"):
         corrupt(clean, layout, kernel="gaussian")
+
+
+def test_full_mask_mixture_masks_every_target_of_its_share_of_windows():
+    """``FullMaskMixture(base, p)``: about ``p`` of the windows have every target masked (the state a one-step
+    decoder predicts from), the others keep the base schedule's ratios; it adds to the base's own rare full masks."""
+    layout = make_layout()
+    clean = make_batch(layout, batch=4000)
+    base = UniformNoiseSchedule(0.5, 0.95)
+    out = corrupt(clean, layout, FullMaskMixture(base, prob=0.3), generator=torch.Generator().manual_seed(4))
+    full = out.noise_level == 1.0
+    assert 0.27 < full.float().mean() < 0.33
+    assert bool(out.corrupted[full][:, layout.target_positions].all())
+    rest = out.noise_level[~full]
+    assert bool(((rest >= 0.5) & (rest <= 0.95)).all())  # the base's draws, untouched
+    assert not bool(out.corrupted[~full][:, layout.target_positions].all(-1).any())  # 0.95 of the targets at most
+    everything = corrupt(clean[:8], layout, FullMaskMixture(base, prob=1.0))
+    assert bool(everything.corrupted[:, layout.target_positions].all()) and FullMaskMixture(base, 1.0).support == (1.0, 1.0)
+    assert FullMaskMixture(base, 0.3).support == (0.5, 1.0)
+    with pytest.raises(ValueError, match=r"prob must lie in \[0, 1\], got 1.5"):
+        FullMaskMixture(base, prob=1.5)
+    with pytest.raises(TypeError, match="base must be a NoiseSchedule, got str"):
+        FullMaskMixture("cosine", prob=0.5)
 
 
 def test_proprio_dropout_corrupts_a_samples_whole_proprio_segment_or_none_of_it():

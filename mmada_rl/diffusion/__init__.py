@@ -23,6 +23,7 @@ from mmada_rl.diffusion.path import DecodingPath, path_log_prob, sample_steps, t
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SampleResult, SamplerConfig, is_greedy
 from mmada_rl.diffusion.schedules import (
     CosineNoiseSchedule,
+    FullMaskMixture,
     NoiseSchedule,
     UniformNoiseSchedule,
     make_noise_schedule,
@@ -40,6 +41,7 @@ __all__ = [
     "Corruption",
     "DecodingPath",
     "DenoiserConfig",
+    "FullMaskMixture",
     "MaskedDiffusionDenoiser",
     "MaskedDiffusionSampler",
     "NoiseKernel",
