@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import torch
 
-from mmada_rl.diffusion.schedules import NoiseSchedule, make_noise_schedule
+from mmada_rl.diffusion.schedules import NoiseSchedule, check_probability, make_noise_schedule
 from mmada_rl.tokenizers.layout import SequenceLayout
 
 __all__ = [
@@ -83,12 +83,6 @@ class Corruption(NamedTuple):
     corrupted: torch.Tensor
     #: Float ``[B]``: the drawn ratio ``ρ`` (the denoiser's noise-level input).
     noise_level: torch.Tensor
-
-
-def check_probability(name: str, value: float) -> None:
-    """Raise a ``ValueError`` naming ``name`` unless ``value`` lies in ``[0, 1]``."""
-    if not 0.0 <= value <= 1.0:
-        raise ValueError(f"{name} must lie in [0, 1], got {value!r}.")
 
 
 def corrupt(

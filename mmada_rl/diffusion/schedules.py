@@ -20,9 +20,16 @@ __all__ = [
     "FullMaskMixture",
     "NoiseSchedule",
     "UniformNoiseSchedule",
+    "check_probability",
     "make_noise_schedule",
     "masked_counts",
 ]
+
+
+def check_probability(name: str, value: float) -> None:
+    """Raise a ``ValueError`` naming ``name`` unless ``value`` lies in ``[0, 1]``."""
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must lie in [0, 1], got {value!r}.")
 
 
 class NoiseSchedule:
@@ -118,8 +125,7 @@ class FullMaskMixture(NoiseSchedule):
     def __post_init__(self) -> None:
         if not isinstance(self.base, NoiseSchedule):
             raise TypeError(f"base must be a NoiseSchedule, got {type(self.base).__name__}.")
-        if not 0.0 <= self.prob <= 1.0:
-            raise ValueError(f"prob must lie in [0, 1], got {self.prob!r}.")
+        check_probability("prob", self.prob)
 
     def sample(self, batch_size, *, generator=None, device=None):
         rho = self.base.sample(batch_size, generator=generator, device=device)
