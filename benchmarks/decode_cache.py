@@ -65,12 +65,12 @@ def random_sequences(layout, batch: int, generator: torch.Generator) -> torch.Te
     return ids
 
 
-def interleaved(variants: dict, repeats: int) -> dict[str, list[float]]:
+def interleaved(variants: dict, repeats: int, device: torch.device) -> dict[str, list[float]]:
     """Wall times of each variant's callable, ``repeats`` rounds run side by side after one warm-up round."""
     times = {name: [] for name in variants}
     for repeat in range(repeats + 1):
         for name, fn in variants.items():
-            t = timed(fn)
+            t = timed(fn, device)
             if repeat:
                 times[name].append(t)
     return times
@@ -89,9 +89,12 @@ def three_way(times: dict[str, list[float]], **setting) -> dict:
     return record
 
 
-def timed(fn) -> float:
+def timed(fn, device: torch.device) -> float:
+    """Wall time of ``fn()``; work queued on a CUDA device is timed to its end, not its launch."""
     start = time.perf_counter()
     fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
     return time.perf_counter() - start
 
 
@@ -108,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--corruptions", nargs="+", type=int, default=[1, 2, 4],
                         help="corruptions per window C of the pretraining loss")
     parser.add_argument("--repeats", type=int, default=10, help="side-by-side timings per setting")
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--device", default="cpu", help="torch device the denoisers run on (default: cpu; e.g. cuda)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="decode_cache")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -117,6 +121,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--batch, --steps, --replay-paths, --train-batch, --corruptions and --repeats must be positive.")
     if not 0 < args.replay_steps <= max(args.steps):
         parser.error(f"--replay-steps must lie in [1, {max(args.steps)}].")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError as err:
+        parser.error(f"--device: {err}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        parser.error(f"--device {args.device}: torch sees no CUDA device on this machine.")
     torch.set_num_threads(args.threads)
 
     from mmada_rl.diffusion import DenoiserConfig, MaskedDiffusionDenoiser, MaskedDiffusionSampler, SamplerConfig
@@ -131,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     nets = {}
     for attention in ("bidirectional", "block_causal"):
         torch.manual_seed(args.seed)
-        nets[attention] = MaskedDiffusionDenoiser(DenoiserConfig.preset(args.preset, attention=attention), layout).eval()
+        nets[attention] = MaskedDiffusionDenoiser(DenoiserConfig.preset(args.preset, attention=attention), layout).eval().to(device)
     variants = {  # name: (denoiser, cache the conditioning)
         "bidirectional": (nets["bidirectional"], False),
         "block-causal": (nets["block_causal"], False),
@@ -139,32 +149,33 @@ def main(argv: list[str] | None = None) -> int:
     }
     generator = torch.Generator().manual_seed(args.seed)
     conditioning = int(layout.is_condition.sum())
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{args.threads} CPU thread(s)"
     print(f"layout: L={layout.length} ({conditioning} conditioning, {layout.num_targets} targets); "
-          f"{args.preset} denoiser, {args.threads} thread(s)", flush=True)
+          f"{args.preset} denoiser, {where}", flush=True)
 
     decode = []
     for batch in args.batch:
-        prompts = random_prompts(layout, batch, generator)
+        prompts = random_prompts(layout, batch, generator).to(device)
         for steps in args.steps:
             samplers = {name: MaskedDiffusionSampler(SamplerConfig(num_steps=steps, cache_condition=cache))
                         for name, (_, cache) in variants.items()}
             times = interleaved({name: (lambda name=name, net=net: samplers[name].sample(net, prompts, greedy=True))
-                                 for name, (net, _) in variants.items()}, args.repeats)
+                                 for name, (net, _) in variants.items()}, args.repeats, device)
             decode.append(three_way(times, batch=batch, num_steps=steps))
             print(decode[-1], flush=True)
 
     net = nets["block_causal"]
-    prompts = random_prompts(layout, args.replay_paths, generator)
+    prompts = random_prompts(layout, args.replay_paths, generator).to(device)
     path = MaskedDiffusionSampler(SamplerConfig(num_steps=max(args.steps))).sample(
-        net, prompts, greedy=False, generator=generator).path
-    steps = sample_steps(path.committed, args.replay_steps, generator)  # as PathPPOLoss draws them
+        net, prompts, greedy=False, generator=torch.Generator(device=device).manual_seed(args.seed)).path
+    steps = sample_steps(path.committed.cpu(), args.replay_steps, generator).to(device)  # as PathPPOLoss draws them
 
     def replay(cache: bool) -> None:
         net.zero_grad(set_to_none=True)
         path_log_prob(net, path, steps=steps, cache_condition=cache).sum().backward()
 
     replay_times = interleaved({"block-causal": lambda: replay(False), "block-causal + cache": lambda: replay(True)},
-                               args.repeats)
+                               args.repeats, device)
     replay_record = {
         "paths": args.replay_paths, "replayed_steps": args.replay_steps, "num_steps": path.num_steps,
         "block-causal ms": 1000 * statistics.median(replay_times["block-causal"]),
@@ -173,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(replay_record, flush=True)
 
-    windows = TensorDict({SEQUENCE_KEY: random_sequences(layout, args.train_batch, generator)}, batch_size=[args.train_batch])
+    windows = TensorDict({SEQUENCE_KEY: random_sequences(layout, args.train_batch, generator)},
+                         batch_size=[args.train_batch]).to(device)
 
     def train_step(loss_fn) -> None:
         loss_fn.zero_grad(set_to_none=True)
@@ -184,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     for copies in args.corruptions:
         losses = {name: MaskedDiffusionLoss(denoiser.train(), schedule="cosine", corruptions_per_sample=copies,
                                             cache_condition=cache) for name, (denoiser, cache) in variants.items()}
-        times = interleaved({name: (lambda fn=fn: train_step(fn)) for name, fn in losses.items()}, args.repeats)
+        times = interleaved({name: (lambda fn=fn: train_step(fn)) for name, fn in losses.items()}, args.repeats, device)
         training.append(three_way(times, windows=args.train_batch, corruptions=copies))
         print(training[-1], flush=True)
     one = training[0]["block-causal + cache ms"] if args.corruptions[0] == 1 else None
@@ -197,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     markdown = (
         f"# Decoding with a conditioning cache ({args.preset} denoiser, layout of `{args.layout_from}`)\n\n"
         f"Sequence of {layout.length} positions: {conditioning} conditioning, {layout.num_targets} targets. "
-        f"Greedy decoding of one chunk batch, no gradient, {args.threads} thread(s); medians of {args.repeats} "
+        f"Greedy decoding of one chunk batch, no gradient, {where}; medians of {args.repeats} "
         "interleaved timings, ratios are medians of the side-by-side pairs.\n\n"
         + markdown_table(header, rows)
         + f"\n\nPath-likelihood PPO replay (forward + backward) of {args.replay_steps} of {path.num_steps} steps "
@@ -212,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
                           + ([f"{r['block-causal + cache ms'] / one:.2f}"] if one else []) for r in training])
         + "\n"
     )
-    payload = {"layout_from": args.layout_from, "preset": args.preset, "length": layout.length,
+    payload = {"layout_from": args.layout_from, "preset": args.preset, "device": str(device), "where": where,
+               "length": layout.length,
                "conditioning": conditioning, "targets": layout.num_targets, "repeats": args.repeats,
                "decode": decode, "replay": replay_record, "training": training}
     json_path, md_path = write_results(args.name, payload, markdown, args.out)

@@ -13,8 +13,10 @@ width of the denoiser set the price. This measures one full training step —
 as JSON; the denoiser's weights are freshly initialised, the cost does not
 depend on them) on the same real windows of ``--demos`` (random-shifted as the
 recipe trains them), and with ``--bc`` one step of the BC baseline on them.
-The variants run interleaved, ``--repeats`` rounds; each ratio is the median
-of the per-round ratios to the first variant.
+With several ``--devices`` (``cpu cuda``) every variant runs on each, its
+windows sampled on the CPU as the recipes sample them; a step on an accelerator
+is timed to its end (synchronised). The variants run interleaved, ``--repeats``
+rounds; each ratio is the median of the per-round ratios to the first row.
 
 Writes ``benchmarks/results/<name>.{json,md,png}`` (default ``train_throughput``).
 """
@@ -60,11 +62,17 @@ BASE_FIELDS = {"chunk_size": 5, "denoiser": "small",
                "denoiser_overrides": {"cross_attention_to_visual": True, "visual_encoder_channels": [32, 64, 128]}}
 
 
-def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float):
-    """A closure running one training step of the variant on a window batch; and its description."""
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (a step's time is its end, not its launch)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float, device: torch.device):
+    """A closure running one training step of the variant on ``device`` on a (CPU) window batch; and its description."""
     overrides = {**BASE_FIELDS["denoiser_overrides"], **fields.pop("denoiser_overrides", {})}
     model = MMaDAModel(MMaDAConfig(**{**BASE_FIELDS, **fields, "denoiser_overrides": overrides}),
-                       Tokenizers.load(tokenizer_dir)).train()
+                       Tokenizers.load(tokenizer_dir)).to(device).train()
     loss = MaskedDiffusionLoss(model.denoiser)
     optimizer = make_optimizer(model.denoiser.parameters(), lr=lr, weight_decay=0.01)
 
@@ -74,30 +82,32 @@ def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float):
         optimizer.zero_grad(set_to_none=True)
         total.backward()
         optimizer.step()
+        synchronize(device)
 
-    info = {"name": name, "tokenizers": str(tokenizer_dir), "fields": {**fields, "denoiser_overrides": overrides},
+    info = {"name": name, "device": str(device), "tokenizers": str(tokenizer_dir), "fields": {**fields, "denoiser_overrides": overrides},
             "sequence_length": model.layout.length, "parameters": model.denoiser.num_parameters()}
     return step, info
 
 
-def build_bc_step(buffer: DemoBuffer, chunk_size: int, lr: float):
-    """One training step of the BC baseline (its recipe's default encoder and head)."""
+def build_bc_step(buffer: DemoBuffer, chunk_size: int, lr: float, device: torch.device):
+    """One training step of the BC baseline (its recipe's default encoder and head) on ``device``."""
     meta = buffer.metadata
     policy = baselines.make_policy("bc", {"chunk_size": chunk_size, "action_dim": meta.action_dim,
                                           "state_dim": meta.state_dim, "image_size": meta.image_size,
                                           "obs_mode": meta.obs_mode, "camera_fov": meta.camera_fov},
-                                   baselines.NormalizationStats.from_buffer(buffer)).train()
+                                   baselines.NormalizationStats.from_buffer(buffer)).to(device).train()
     loss = baselines.make_loss(policy)
     optimizer = make_optimizer(policy.parameters(), lr=lr, weight_decay=0.01)
 
     def step(windows) -> None:
-        losses = loss(windows.clone())
+        losses = loss(windows.clone().to(device))  # the loss writes into its input
         total = sum(v for k, v in losses.items() if k.startswith("loss_"))
         optimizer.zero_grad(set_to_none=True)
         total.backward()
         optimizer.step()
+        synchronize(device)
 
-    return step, {"name": "BC baseline", "tokenizers": "-", "fields": {}, "sequence_length": None,
+    return step, {"name": "BC baseline", "device": str(device), "tokenizers": "-", "fields": {}, "sequence_length": None,
                   "parameters": sum(p.numel() for p in policy.parameters())}
 
 
@@ -112,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=10, help="interleaved rounds (default: 10)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps per variant first (default: 2)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default: 1, as the recipes train)")
+    parser.add_argument("--devices", nargs="+", default=["cpu"], metavar="DEVICE",
+                        help="torch devices each variant trains on, side by side (default: cpu; e.g. cpu cuda)")
     parser.add_argument("--random-shift", type=int, default=4, help="image shift of the windows (default: 4)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="train_throughput", help="results file stem (default: train_throughput)")
@@ -124,6 +136,13 @@ def main(argv: list[str] | None = None) -> int:
     for name, directory, _ in args.variant:
         if not (directory / "action").exists():
             parser.error(f"variant {name!r}: no fitted tokenizers in {directory}.")
+    try:
+        devices = [torch.device(d) for d in args.devices]
+    except RuntimeError as err:
+        parser.error(f"--devices: {err}")
+    missing = [str(d) for d in devices if d.type == "cuda" and not torch.cuda.is_available()]
+    if missing:
+        parser.error(f"--devices {' '.join(missing)}: torch sees no CUDA device on this machine.")
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -132,14 +151,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.random_shift:
         windows.append_transform(RandomShift(args.random_shift))
     steps, infos = [], []
-    for name, directory, fields in args.variant:
-        step, info = build_step(name, directory, dict(fields), lr=3e-4)
-        steps.append(step)
-        infos.append(info)
-    if args.bc:
-        step, info = build_bc_step(buffer, BASE_FIELDS["chunk_size"], lr=3e-4)
-        steps.append(step)
-        infos.append(info)
+    for device in devices:
+        for name, directory, fields in args.variant:
+            step, info = build_step(name, directory, dict(fields), lr=3e-4, device=device)
+            steps.append(step)
+            infos.append(info)
+        if args.bc:
+            step, info = build_bc_step(buffer, BASE_FIELDS["chunk_size"], lr=3e-4, device=device)
+            steps.append(step)
+            infos.append(info)
 
     batch = windows.sample()
     for step in steps:
@@ -158,23 +178,24 @@ def main(argv: list[str] | None = None) -> int:
         ratio = statistics.median(a / b for a, b in zip(t, times[0]))
         results.append({**info, "step_s": t, "median_step_s": median, "windows_per_s": args.batch_size / median,
                         "step_time_vs_first": ratio})
-        rows.append([info["name"], info["sequence_length"] or "-", f"{info['parameters'] / 1e6:.2f}M",
+        rows.append([info["name"], info["device"], info["sequence_length"] or "-", f"{info['parameters'] / 1e6:.2f}M",
                      f"{median:.3f}", f"{args.batch_size / median:.1f}", f"{ratio:.2f}×"])
 
     md = (f"# Pretraining throughput\n\nOne training step (loss, backward, AdamW) on {args.batch_size} "
-          f"real windows of `{args.demos}`, {args.threads} torch thread(s), {args.repeats} interleaved rounds; "
+          f"real windows of `{args.demos}`, {args.threads} torch CPU thread(s), {args.repeats} interleaved rounds; "
           f"the step-time ratio is the median of the per-round ratios to the first row.\n\n"
-          + markdown_table(["configuration", "sequence length", "parameters", "median step (s)", "windows/s",
+          + markdown_table(["configuration", "device", "sequence length", "parameters", "median step (s)", "windows/s",
                             "step time vs first"], rows) + "\n")
-    write_results(args.name, {"batch_size": args.batch_size, "threads": args.threads,
-                              "variants": results}, md, args.out)
+    accelerators = sorted({torch.cuda.get_device_name(d) for d in devices if d.type == "cuda"})
+    write_results(args.name, {"batch_size": args.batch_size, "threads": args.threads, "devices": args.devices,
+                              "accelerators": accelerators, "variants": results}, md, args.out)
 
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 0.6 * len(results) + 1.2))
-    names = [r["name"] for r in results][::-1]
+    names = [r["name"] if len(devices) == 1 else f"{r['name']} ({r['device']})" for r in results][::-1]
     ax.barh(names, [r["windows_per_s"] for r in results][::-1], color="tab:blue")
     ax.set_xlabel(f"training windows per second ({args.threads} thread(s), batch {args.batch_size})")
     ax.set_xscale("log")

@@ -563,6 +563,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["algo=ppo", "loss.ppo.demo_coef=1.0", "demos.ratio=0"], "raise demos.ratio"),
     (["algo=ppo", "collector.action_noise=0.1"], "path-likelihood PPO needs the sampled paths"),
     (["collector.action_noise=-0.1"], "collector.action_noise must be >= 0"),
+    (["device=cuda"], "the fine-tuning recipe runs on the CPU only"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

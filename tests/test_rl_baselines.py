@@ -196,6 +196,7 @@ def test_interrupted_run_resumes_from_its_last_checkpoint(toy_runs, state_demos,
     (["algo=dqn"], "algo='dqn' is not an RL baseline; use algo=ppo, algo=sac or algo=iql"),
     (["algo=sac", "collector.total_env_steps=50"], "must be a positive multiple of collector.frames_per_batch=32"),
     (["algo=ppo", "loss.ppo.minibatch_size=10"], "must be a multiple of loss.ppo.minibatch_size=10"),
+    (["device=cuda:0"], "recipe runs on the CPU only"),
 ])
 def test_bad_configs_fail_with_one_clear_error(tmp_path, overrides, message):
     proc = run_recipe(f"run_dir={tmp_path}", *overrides, timeout=120)

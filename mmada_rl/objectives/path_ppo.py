@@ -131,7 +131,8 @@ class PathPPOLoss(LossModule):
         layout = denoiser.module.layout
         scored = torch.isin(layout.target_positions, layout.action_positions) if tokens == "action" else \
             torch.ones(layout.target_positions.numel(), dtype=torch.bool)
-        self.register_buffer("scored_targets", scored)  # (T,) the target columns that enter the ratio
+        device = next(denoiser.parameters()).device  # with the weights, as TorchRL's losses place their buffers
+        self.register_buffer("scored_targets", scored.to(device))  # (T,) the target columns that enter the ratio
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass

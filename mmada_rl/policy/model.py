@@ -328,6 +328,11 @@ class MMaDAModel(nn.Module):
     def image_size(self) -> int:
         return self.image_tokenizer.config.image_size
 
+    @property
+    def device(self) -> torch.device:
+        """Where the denoiser's weights are; the sequence methods move their inputs there."""
+        return next(self.denoiser.parameters()).device
+
     # -- sequence construction ------------------------------------------------
     @torch.no_grad()
     def _condition(self, td: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -368,7 +373,7 @@ class MMaDAModel(nn.Module):
         if self.denoiser.visual_encoder is None:
             return None
         image = td.get(IMAGE_KEY)
-        return image.reshape(-1, *image.shape[-3:])
+        return image.reshape(-1, *image.shape[-3:]).to(self.device)
 
     @torch.no_grad()
     def sequence(self, td: TensorDictBase, action_tokens: torch.Tensor | None = None) -> torch.Tensor:
@@ -377,6 +382,7 @@ class MMaDAModel(nn.Module):
         ``action_tokens`` (local codes ``[B, K, d_tok]``, e.g. the ones a rollout
         sampled) are used as they are instead of re-encoding the chunk.
         """
+        td = td.to(self.device)  # windows sampled from a CPU buffer for a model on an accelerator
         cond = self._condition(td)
         if action_tokens is None:
             chunk = td.get(ACTION_CHUNK_KEY)  # (B, K, A)
@@ -387,7 +393,7 @@ class MMaDAModel(nn.Module):
                 warnings.simplefilter("ignore", ActionOutOfRangeWarning)
                 actions = self.action_tokenizer.encode(chunk)  # (B, K, d_tok)
         else:
-            actions = action_tokens.reshape(-1, *action_tokens.shape[-2:])
+            actions = action_tokens.reshape(-1, *action_tokens.shape[-2:]).to(self.device)
             if actions.shape[-2] != self.config.chunk_size:
                 raise ValueError(f"action_tokens hold {actions.shape[-2]} actions but the model's chunk_size is {self.config.chunk_size}.")
         goal = self.image_tokenizer.encode(td.get(GOAL_IMAGE_KEY)) if self.config.predict_goal else None
@@ -397,6 +403,7 @@ class MMaDAModel(nn.Module):
         """What a masked-diffusion loss reads from a batch of chunk windows: the clean
         sequence ``[B, L]``, the chunk's padding flags ``[B, K]`` and, with
         cross-attention, the visual input (:meth:`visual_input`)."""
+        windows = windows.to(self.device)
         ids = self.sequence(windows)
         rows = TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY)},
                           batch_size=[ids.shape[0]], device=ids.device)
@@ -408,7 +415,7 @@ class MMaDAModel(nn.Module):
     @torch.no_grad()
     def prompt(self, td: TensorDictBase) -> torch.Tensor:
         """Ids ``[B, L]`` of an observation with every target position masked."""
-        return self.layout.assemble(**self._condition(td))
+        return self.layout.assemble(**self._condition(td.to(self.device)))
 
     @torch.no_grad()
     def act(self, td: TensorDictBase, *, greedy: bool | None = None, generator: torch.Generator | None = None,

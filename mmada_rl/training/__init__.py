@@ -9,7 +9,7 @@ from mmada_rl.training.checkpoint import (
 )
 from mmada_rl.training.ema import WeightEMA, ema_applied, ema_checkpointed, resume_own_weights
 from mmada_rl.training.optim import make_optimizer, make_scheduler, optimizer_step
-from mmada_rl.training.run import start_run
+from mmada_rl.training.run import require_cpu, start_run
 
 __all__ = [
     "Checkpoint",
@@ -22,6 +22,7 @@ __all__ = [
     "make_optimizer",
     "make_scheduler",
     "optimizer_step",
+    "require_cpu",
     "resume_own_weights",
     "resume_training",
     "save_checkpoint",

@@ -6,7 +6,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["start_run"]
+__all__ = ["require_cpu", "start_run"]
 
 
 def start_run(cfg: DictConfig) -> tuple[Path, dict]:
@@ -18,3 +18,13 @@ def start_run(cfg: DictConfig) -> tuple[Path, dict]:
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     return run_dir, OmegaConf.to_container(cfg, resolve=True)
+
+
+def require_cpu(cfg: DictConfig, recipe: str) -> None:
+    """Raise unless ``cfg.device`` is the CPU: the online recipes collect in CPU simulators and have not
+    been run on an accelerator (the pretraining and imitation recipes have; README, "On a GPU")."""
+    device = torch.device(str(cfg.get("device", "cpu")))
+    if device.type != "cpu":
+        raise ValueError(f"device={cfg.device}: the {recipe} recipe runs on the CPU only (its collection and "
+                         "updates are untested on an accelerator); use device=cpu. Pretraining and the "
+                         "imitation baselines take device=cuda.")

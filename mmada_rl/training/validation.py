@@ -76,8 +76,8 @@ def chunk_error(policy, batches: list[TensorDictBase]) -> list[float]:
             chunk = policy.act(batch, greedy=True, decode_goal=False).chunk  # (B, K, A)
         else:
             chunk = policy(batch.clone()).get(ACTION_CHUNK_KEY)  # (B, K, A)
-        real = ~batch.get(ACTION_IS_PAD_KEY).bool()  # (B, K)
-        errors.append((chunk - batch.get(ACTION_CHUNK_KEY)).abs()[real])  # (M, A)
+        real = ~batch.get(ACTION_IS_PAD_KEY).bool().to(chunk.device)  # (B, K)
+        errors.append((chunk - batch.get(ACTION_CHUNK_KEY).to(chunk.device)).abs()[real])  # (M, A)
     return torch.cat(errors).mean(0).tolist()
 
 

@@ -53,7 +53,7 @@ def main(cfg: DictConfig) -> None:
     pbar = tqdm(range(start, total), initial=start, total=total, desc=cfg.algo)
     for step in pbar:
         t0 = time.perf_counter()
-        scalars = optimizer_step(loss_module(data.sample()), policy.parameters(), optimizer,
+        scalars = optimizer_step(loss_module(data.sample().to(cfg.device)), policy.parameters(), optimizer,
                                  grad_clip=cfg.optim.grad_clip, scheduler=scheduler, ema=ema)
         done = step + 1
         metrics = {f"train/{k}": v for k, v in scalars.items()}

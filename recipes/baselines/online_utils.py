@@ -37,6 +37,7 @@ DEFAULT_OBS_MODE = {"ppo": "rgb", "sac": "state", "iql": "state"}
 
 def check_config(cfg: DictConfig) -> None:
     """Fail before anything is built, with one sentence per bad value."""
+    training.require_cpu(cfg, "online RL baselines'")
     if cfg.algo not in ALGOS:
         raise ValueError(f"algo={cfg.algo!r} is not an RL baseline; use algo=ppo, algo=sac or algo=iql.")
     total, batch = int(cfg.collector.total_env_steps), int(cfg.collector.frames_per_batch)

@@ -56,6 +56,7 @@ ROW_KEYS = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, VALUE_TARGET_KEY, IM
 
 def check_config(cfg: DictConfig) -> None:
     """Fail early, with one sentence, on settings that cannot work together."""
+    training.require_cpu(cfg, "fine-tuning")
     if cfg.algo not in ALGOS:
         raise ValueError(f"algo={cfg.algo!r} is not a fine-tuning algorithm; use algo=rwr or algo=ppo.")
     if cfg.advantage.estimator not in ESTIMATORS:
