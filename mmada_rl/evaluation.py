@@ -48,6 +48,7 @@ from tqdm.auto import tqdm
 from mmada_rl.baselines import AGENT_CONFIG, POLICY_CONFIG, is_policy_dir, is_rl_agent_dir, load_policy, load_rl_actor
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.envs.maniskill import EnvConfig
+from mmada_rl.envs.tasks import task_spec
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
 from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
 from mmada_rl.policy.execution import ExecutionNoise, PolicyEnv, make_policy_env
@@ -145,6 +146,7 @@ class EpisodeResult(NamedTuple):
     length: int  # steps until the first success, or all steps run
     steps: int  # env steps run
     decode_ms: list[float]  # policy latency of each chunk (model.act for MMaDA)
+    stages: dict[str, bool]  # each of the task's progress flags (TaskSpec.stages): true after any action
 
 
 @dataclass
@@ -175,17 +177,26 @@ class EvalResult:
     action_readout: str | None = None  # MMaDA-VLA: "token" or "mean" (MMaDAConfig.action_readout); None for baselines
     checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
     demo_seeds: str | None = None  # the buffer whose demonstrations' seeds were run (None: evaluation seeds)
+    stages: dict[str, float] = field(default_factory=dict)  # share of episodes reaching each TaskSpec.stages flag
+
+    def stage_interval(self, flag: str) -> Interval:
+        """95% Wilson interval of the share of episodes that reached ``flag``."""
+        return wilson_interval(sum(r.stages.get(flag, False) for r in self.per_episode), self.episodes)
 
     def to_dict(self) -> dict:
-        """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``."""
-        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds"}
-        return {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
+        """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``, and
+        ``eval/reached/<flag>`` for each of the task's progress flags."""
+        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds", "stages"}
+        out = {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
+        return {**out, **{f"eval/reached/{flag}": share for flag, share in self.stages.items()}}
 
     def table(self) -> str:
         """A small Markdown table of the headline numbers."""
         rows = [
             ("success_once", f"{self.success_once:.3f} [{self.success_once_ci_low:.3f}, {self.success_once_ci_high:.3f}]"),
             ("success_at_end", f"{self.success_at_end:.3f} [{self.success_at_end_ci_low:.3f}, {self.success_at_end_ci_high:.3f}]"),
+            *((f"reached {flag}", f"{share:.3f} [{self.stage_interval(flag).low:.3f}, {self.stage_interval(flag).high:.3f}]")
+              for flag, share in self.stages.items()),
             ("episode length", f"{self.episode_length:.1f} / {self.max_episode_steps}"),
             ("decode ms / chunk", f"{self.decode_ms_mean:.1f} (p95 {self.decode_ms_p95:.1f})"),
             ("env steps / s", f"{self.env_steps_per_second:.1f}"),
@@ -249,8 +260,9 @@ class _Rollout(NamedTuple):
     frames: torch.Tensor  # uint8 (T+1, 3, H, W): the reset frame, then one per action
 
 
-def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int) -> _Rollout:
-    """One episode from ``reset(seed=seed)`` until the env reports done."""
+def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int, stages: tuple[str, ...] = ()) -> _Rollout:
+    """One episode from ``reset(seed=seed)`` until the env reports done; ``stages``: the progress flags
+    the env reads (``EnvConfig.stage_flags``), each recorded as reached if true after any action."""
     td = penv.env.reset(seed=seed)
     decode_ms, decisions = [], []
     for _ in range(max_decisions):
@@ -265,7 +277,8 @@ def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int) -> _Rollout:
     steps = penv.step_log.steps
     success = [bool(s.get(SUCCESS_KEY)) for s in steps[1:]]  # after each action
     first = success.index(True) + 1 if any(success) else len(success)
-    result = EpisodeResult(seed, any(success), bool(success and success[-1]), first, len(success), decode_ms)
+    reached = {flag: any(bool(s.get(flag)) for s in steps[1:]) for flag in stages}
+    result = EpisodeResult(seed, any(success), bool(success and success[-1]), first, len(success), decode_ms, reached)
     frames = torch.stack([s.get(IMAGE_KEY) for s in steps]) if IMAGE_KEY in steps[0].keys(True) else torch.empty(0)
     return _Rollout(result, decisions, frames)  # no frames for a state-observation policy
 
@@ -341,7 +354,9 @@ def evaluate(
     EnvConfig(task=task)  # an unknown task fails before the model loads
     seeds = episode_seeds(episodes, seed_offset, demo_seeds, task)
     actor = load_actor(model, device)
-    cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps)
+    cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps,
+                          stage_flags=True)
+    stages = task_spec(task).stages
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
     if sample_temperature is not None and (mmada is None or not sample_temperature > 0):
         raise ValueError("sample_temperature needs an MMaDA-VLA policy and a value > 0 "
@@ -367,7 +382,7 @@ def evaluate(
             num_steps = int(getattr(actor, "num_denoise_steps", 0))
         penv = make_policy_env(
             cfg, actor, execute_steps=execute_steps, temporal_ensemble=temporal_ensemble,
-            log_keys=[IMAGE_KEY, SUCCESS_KEY, STEP_KEY],
+            log_keys=[IMAGE_KEY, SUCCESS_KEY, STEP_KEY, *stages],
         )  # fmt: skip
         if action_noise is not None:  # the policy's greedy chunks, perturbed; the noise draws from the seeded global RNG
             penv = penv._replace(policy=ExecutionNoise(penv.policy, action_noise))
@@ -385,7 +400,7 @@ def evaluate(
             bar = tqdm(seeds, desc=f"eval {task}", disable=not progress, unit="ep")
             for seed in bar:
                 torch.manual_seed(seed)  # sampled tokens (or a diffusion policy's noise) repeat with the episode
-                rollout = _run_episode(penv, seed, max_decisions=(limit or 100_000) + 1)
+                rollout = _run_episode(penv, seed, max_decisions=(limit or 100_000) + 1, stages=stages)
                 results.append(rollout.result)
                 if first_episode is None:
                     first_episode = rollout  # its chunks go into the goal grid
@@ -414,6 +429,7 @@ def evaluate(
         action_readout=readout,
         checkpoint=str(model) if isinstance(model, (str, Path)) else None,
         demo_seeds=None if demo_seeds is None else str(demo_seeds),
+        stages={flag: sum(r.stages[flag] for r in results) / n for flag in stages},
     )  # fmt: skip
     if out_dir is not None:
         metrics.files = _write_outputs(Path(out_dir), metrics, frames if video else None,

@@ -166,3 +166,30 @@ def test_reset_after_the_contact_refresh_is_reproducible():
     finally:
         env.close()
     assert (first["proprio"] == again["proprio"]).all()
+
+
+def test_stage_flags_follow_a_demonstration_through_grasp_and_placement(state_demos):
+    """With ``stage_flags`` the env reads the task's own progress flags: a planner demonstration's actions,
+    replayed from its seed, grasp the cube before they place it, and place it by the step the task succeeds."""
+    from torchrl.envs.utils import step_mdp
+
+    from mmada_rl.data import DemoBuffer
+
+    assert task_spec("PickCube-v1").stages == ("is_grasped", "is_obj_placed")
+    episode = next(iter(DemoBuffer.open(state_demos).episodes()))
+    env = make_env(EnvConfig(task="PickCube-v1", obs_mode="state", stage_flags=True))
+    plain = make_env(EnvConfig(task="PickCube-v1", obs_mode="state"))
+    try:
+        check_env_specs(env)
+        td, flags = env.reset(seed=int(episode["seed"][0])), []
+        assert not td["is_grasped"].any() and not td["is_obj_placed"].any()  # nothing reached at reset
+        for action in episode["action"]:
+            td = env.step(td.set("action", action))
+            flags.append([bool(td["next", key]) for key in ("is_grasped", "is_obj_placed", "success")])
+            td = step_mdp(td)
+        assert "is_grasped" not in plain.reset().keys()  # off by default: buffers keep their layout
+    finally:
+        env.close()
+        plain.close()
+    first = {name: next(i for i, f in enumerate(flags) if f[col]) for col, name in enumerate(("grasp", "placed", "success"))}
+    assert first["grasp"] < first["placed"] <= first["success"], first

@@ -150,6 +150,11 @@ def test_evaluate_two_short_episodes(model_dir, tmp_path):
     assert saved["eval/success_once"] == result.success_once and len(saved["per_episode"]) == 2
     assert saved["checkpoint"] == str(model_dir.parent)  # provenance
     assert "success_once" in (tmp_path / "eval.md").read_text()
+    assert set(result.stages) == {"is_grasped", "is_obj_placed"}  # how far each episode got (PickCube-v1's flags)
+    for flag, share in result.stages.items():
+        assert share == sum(r.stages[flag] for r in result.per_episode) / 2 == metrics[f"eval/reached/{flag}"]
+    assert set(saved["per_episode"][0]["stages"]) == {"is_grasped", "is_obj_placed"}
+    assert "reached is_grasped" in (tmp_path / "eval.md").read_text()
     assert (tmp_path / "goal_grid.png").stat().st_size > 0
     assert len(list((tmp_path / "videos").iterdir())) == 2
 

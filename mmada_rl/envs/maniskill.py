@@ -69,6 +69,10 @@ class EnvConfig:
             still uses the seed it is given).
         group_size: consecutive episodes of a worker sharing one initial state
             (group-relative advantages compare them).
+        stage_flags: also read the task's progress flags (``TaskSpec.stages``,
+            e.g. PickCube-v1's ``is_grasped`` and ``is_obj_placed``) into every
+            step, beside ``success`` (evaluation does; off by default, so
+            demonstration buffers keep their layout).
     """
 
     task: str = "PickCube-v1"
@@ -82,6 +86,7 @@ class EnvConfig:
     num_workers: int = 1
     train_seed: int | None = None
     group_size: int = 1
+    stage_flags: bool = False
 
     def __post_init__(self) -> None:
         if self.obs_mode not in OBS_MODES:
@@ -121,7 +126,8 @@ class CanonicalObservation(gym.Wrapper):
     ``"state"`` entry to ``"observation"`` itself, hence the neutral names.)
 
     Applied after ManiSkill's ``CPUGymWrapper`` (numpy, unbatched). Also turns the
-    ``success`` info entry into an array, which TorchRL's info reader requires.
+    ``success`` info entry (and the ``flags`` entries) into an array, which TorchRL's
+    info reader requires; a flag the info lacks (at reset) reads False.
 
     The image is the task's own camera (``base_camera``). Robots with cameras of
     their own add channels after it — StackCube-v1's default ``panda_wristcam``
@@ -129,9 +135,9 @@ class CanonicalObservation(gym.Wrapper):
     those are dropped, so every task gives the policy one third-person view.
     """
 
-    def __init__(self, env: gym.Env, obs_mode: ObsMode):
+    def __init__(self, env: gym.Env, obs_mode: ObsMode, flags: tuple[str, ...] = ()):
         super().__init__(env)
-        self.obs_mode = obs_mode
+        self.obs_mode, self.flags = obs_mode, ("success", *flags)
         space = env.observation_space
         if obs_mode == "rgb":
             h, w, _ = space["rgb"].shape
@@ -148,10 +154,10 @@ class CanonicalObservation(gym.Wrapper):
             return {"camera": image, "proprio": obs["state"].astype(np.float32)}
         return {"proprio": np.asarray(obs, dtype=np.float32)}
 
-    @staticmethod
-    def _info(info: dict) -> dict:
+    def _info(self, info: dict) -> dict:
         info = dict(info)
-        info["success"] = np.asarray([bool(info.get("success", False))])
+        for flag in self.flags:
+            info[flag] = np.asarray([bool(info.get(flag, False))])
         return info
 
     def reset(self, **kwargs):
@@ -267,7 +273,7 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
     if cfg.obs_mode == "rgb":
         env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
     env = CPUGymWrapper(env, ignore_terminations=cfg.ignore_terminations)
-    return CanonicalObservation(env, cfg.obs_mode)
+    return CanonicalObservation(env, cfg.obs_mode, task_spec(cfg.task).stages if cfg.stage_flags else ())
 
 
 def _make_single_env(cfg: EnvConfig, worker: int = 0, extra_transform: Callable[[], Transform] | None = None) -> TransformedEnv:
@@ -277,6 +283,10 @@ def _make_single_env(cfg: EnvConfig, worker: int = 0, extra_transform: Callable[
         gym_env = SeedSchedule(gym_env, cfg.train_seed + worker * WORKER_SEED_STRIDE, cfg.group_size)
         info_keys.append(EPISODE_SEED_KEY)
         info_specs.append(Unbounded(shape=(1,), dtype=torch.int64))
+    if cfg.stage_flags:
+        stages = task_spec(cfg.task).stages
+        info_keys += list(stages)
+        info_specs += [Binary(shape=(1,), dtype=torch.bool) for _ in stages]
     base = ManiSkillEnv(gym_env)
     base.set_info_dict_reader(default_info_dict_reader(info_keys, spec=info_specs))
     keys = {"camera": IMAGE_KEY, "proprio": STATE_KEY}

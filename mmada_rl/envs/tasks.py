@@ -22,6 +22,10 @@ class TaskSpec:
         planner: name of the ``mani_skill.examples.motionplanning.panda.solutions``
             function that solves the task, or ``None`` when there is none.
         registered: False for tasks outside the registry (generic instruction).
+        stages: ManiSkill's own progress flags of the task (entries of its
+            ``evaluate()`` info), in the order a successful episode reaches them;
+            evaluation reports the share of episodes that reach each
+            (``EnvConfig.stage_flags``).
     """
 
     task_id: str
@@ -29,14 +33,17 @@ class TaskSpec:
     max_episode_steps: int | None
     planner: str | None
     registered: bool = True
+    stages: tuple[str, ...] = ()
 
 
 TASKS: dict[str, TaskSpec] = {
     spec.task_id: spec
     for spec in (
-        TaskSpec("PickCube-v1", "pick up the red cube and move it to the green goal", 100, "solvePickCube"),
+        TaskSpec("PickCube-v1", "pick up the red cube and move it to the green goal", 100, "solvePickCube",
+                 stages=("is_grasped", "is_obj_placed")),
         TaskSpec("PushCube-v1", "push the cube to the red and white target", 100, "solvePushCube"),
-        TaskSpec("StackCube-v1", "stack the red cube on top of the green cube", 200, "solveStackCube"),
+        TaskSpec("StackCube-v1", "stack the red cube on top of the green cube", 200, "solveStackCube",
+                 stages=("is_cubeA_grasped", "is_cubeA_on_cubeB")),
         TaskSpec("PullCube-v1", "pull the cube back to the red and white target", 100, "solvePullCube"),
         TaskSpec("PegInsertionSide-v1", "insert the peg into the hole in the box from the side", 200, "solvePegInsertionSide"),
         TaskSpec("LiftPegUpright-v1", "lift the peg lying on the table upright", 200, "solveLiftPegUpright"),
