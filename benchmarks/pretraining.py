@@ -37,9 +37,11 @@ def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
 
 
 def read_evaluations(run: Path, prefix: str = "eval") -> list[dict]:
-    """Every evaluation logged under ``prefix`` (``eval`` or ``eval/<task>`` for a multi-task run), by step."""
+    """Every evaluation logged under ``prefix`` (``eval`` or ``eval/<task>`` for a multi-task run), by step;
+    the shares of episodes that reached the task's progress flags as ``reached/<flag>``."""
     evals = {step: {"success_once": v} for step, v in read_scalar(run, f"{prefix}/success_once")}
-    for key in ("success_once_ci_low", "success_once_ci_high", "episodes", "success_at_end", "decode_ms_mean"):
+    reached = sorted(f"reached/{p.stem}" for p in (run / "logs" / "scalars" / prefix / "reached").glob("*.csv"))
+    for key in ("success_once_ci_low", "success_once_ci_high", "episodes", "success_at_end", "decode_ms_mean", *reached):
         for step, v in read_scalar(run, f"{prefix}/{key}"):
             evals.setdefault(step, {})[key] = v
     return [{"step": s, **e} for s, e in sorted(evals.items())]

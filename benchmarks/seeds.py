@@ -16,7 +16,9 @@ A fine-tuning run (``recipes/finetune``, e.g. one of ``benchmarks/compare``'s) i
 ``eval_history.json``: its last evaluation, or with ``RUN@S`` the one at ``S`` online env steps.
 For every group: each seed's ``success_once`` with its 95% Wilson interval, the mean and
 standard deviation over seeds, and the episodes of all seeds pooled (successes / trials,
-with their Wilson interval). Sources of one group must have been evaluated on the same
+with their Wilson interval); where every source recorded the task's progress flags
+(``eval/reached/<flag>``, e.g. PickCube-v1's ``is_grasped``), the pooled episodes that
+reached each. Sources of one group must have been evaluated on the same
 number of episodes (the same fixed evaluation seeds), or the comparison is not like for like.
 Writes ``benchmarks/results/NAME.{json,md,png}``.
 """
@@ -66,7 +68,8 @@ def _split_tags(source: Path) -> tuple[Path, int | None, str]:
 
 
 def read_source(source: Path) -> dict:
-    """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end}``."""
+    """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end, reached}``
+    (``reached``: ``{flag: share of episodes}`` of the task's progress flags, empty where none were recorded)."""
     label = source
     source, at_step, prefix = _split_tags(source)
     if source.is_file():
@@ -77,7 +80,8 @@ def read_source(source: Path) -> dict:
         checkpoint = data.get("checkpoint")
         seed = _run_seed(Path(checkpoint)) if checkpoint and Path(checkpoint).is_dir() else None
         row = {"seed": seed, "step": None, "episodes": episodes, "success_once": float(data["eval/success_once"]),
-               "success_at_end": float(data["eval/success_at_end"])}
+               "success_at_end": float(data["eval/success_at_end"]),
+               "reached": {k[len("eval/reached/"):]: float(v) for k, v in data.items() if k.startswith("eval/reached/")}}
     elif source.is_dir():
         evaluations, unit = _run_evaluations(source, prefix)
         if at_step is None:
@@ -88,7 +92,8 @@ def read_source(source: Path) -> dict:
                 logged = ", ".join(str(e["step"]) for e in evaluations)
                 raise ValueError(f"{source} logged no evaluation at {unit} {at_step} (it logged: {logged}).")
         row = {"seed": _run_seed(source), "step": chosen["step"], "episodes": int(chosen.get("episodes", 0)),
-               "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end")}
+               "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end"),
+               "reached": {k[len("reached/"):]: v for k, v in chosen.items() if k.startswith("reached/")}}
     else:
         raise FileNotFoundError(f"{source}: neither an eval.json nor a run directory.")
     if row["episodes"] < 1:
@@ -127,10 +132,16 @@ def summarize_group(label: str, sources: list[Path]) -> dict:
     pooled = wilson_interval(successes, trials)
     for r in rows:
         r["ci"] = list(wilson_interval(r["successes"], r["episodes"]))
+    flags = [f for f in rows[0]["reached"] if all(f in r["reached"] for r in rows)]  # recorded by every seed
+    reached = {}
+    for flag in flags:
+        count = sum(round(r["reached"][flag] * r["episodes"]) for r in rows)
+        reached[flag] = {"episodes": count, "trials": trials, "rate": count / trials, "ci": list(wilson_interval(count, trials))}
     return {
         "label": label, "seeds": rows, "num_seeds": len(rows), "episodes_per_seed": episodes.pop(),
         "mean": statistics.fmean(rates), "std": statistics.stdev(rates) if len(rates) > 1 else 0.0,
         "pooled": {"successes": successes, "trials": trials, "rate": successes / trials, "ci": list(pooled)},
+        "reached": reached,
     }
 
 
@@ -155,8 +166,13 @@ def main(argv: list[str] | None = None) -> int:
         p = g["pooled"]
         rows.append([g["label"], g["num_seeds"], g["episodes_per_seed"], per_seed, f"{g['mean']:.2f} ± {g['std']:.2f}",
                      f"{p['successes']}/{p['trials']} = {p['rate']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"])
-    table = markdown_table(["configuration", "training seeds", "episodes per seed", "successes per seed",
-                            "success_once mean ± std over seeds", "pooled [95% CI]"], rows)
+        if any(grp["reached"] for grp in groups):
+            rows[-1].append("; ".join(f"{flag} {r['episodes']}/{r['trials']}" for flag, r in g["reached"].items()) or "-")
+    header = ["configuration", "training seeds", "episodes per seed", "successes per seed",
+              "success_once mean ± std over seeds", "pooled [95% CI]"]
+    if any(g["reached"] for g in groups):
+        header.append("episodes reaching each stage, pooled")
+    table = markdown_table(header, rows)
 
     import matplotlib
 

@@ -155,6 +155,13 @@ def test_evaluate_two_short_episodes(model_dir, tmp_path):
         assert share == sum(r.stages[flag] for r in result.per_episode) / 2 == metrics[f"eval/reached/{flag}"]
     assert set(saved["per_episode"][0]["stages"]) == {"is_grasped", "is_obj_placed"}
     assert "reached is_grasped" in (tmp_path / "eval.md").read_text()
+    # the seeds report pools the episodes that reached each stage
+    assert load_script("benchmarks/seeds.py").main(["--group", "two episodes", str(tmp_path / "eval.json"),
+                                                    "--name", "stages", "--out", str(tmp_path / "report")]) == 0
+    group = json.loads((tmp_path / "report" / "stages.json").read_text())["groups"][0]
+    assert {flag: (r["episodes"], r["trials"]) for flag, r in group["reached"].items()} == {
+        flag: (sum(e.stages[flag] for e in result.per_episode), 2) for flag in result.stages}
+    assert "episodes reaching each stage, pooled" in (tmp_path / "report" / "stages.md").read_text()
     assert (tmp_path / "goal_grid.png").stat().st_size > 0
     assert len(list((tmp_path / "videos").iterdir())) == 2
 

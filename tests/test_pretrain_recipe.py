@@ -97,6 +97,9 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     assert average["seeds"][0]["success_once"] == final["eval/success_once"]
     assert [r["success_once"] for r in own_rows["seeds"]] == [final["eval_raw/success_once"]] * 2
     assert [r["step"] for r in own_rows["seeds"]] == [6, 6] and own_rows["seeds"][1]["source"] == f"{averaged}@6@raw"
+    for flag in ("is_grasped", "is_obj_placed"):  # the stages logged with each evaluation
+        assert average["reached"][flag]["rate"] == final[f"eval/reached/{flag}"]
+        assert own_rows["reached"][flag]["rate"] == final[f"eval_raw/reached/{flag}"]
     with pytest.raises(ValueError, match=r"eval_raw/success_once.csv is missing or empty\) \(a pretraining run logs it"):
         seeds.main(["--group", "plain", f"{toy_run}@raw", "--out", str(tmp_path)])
 
