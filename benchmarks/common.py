@@ -62,6 +62,29 @@ def markdown_table(header: list[str], rows: list[list]) -> str:
     return "\n".join(lines)
 
 
+def parse_devices(parser, option: str, names: list[str]) -> list:
+    """The torch devices of a benchmark's ``option`` (``names`` as typed); ``parser.error`` on a malformed
+    name or a CUDA device that torch does not see here."""
+    import torch
+
+    try:
+        devices = [torch.device(name) for name in names]
+    except RuntimeError as err:
+        parser.error(f"{option}: {err}")
+    missing = [name for name, device in zip(names, devices) if device.type == "cuda" and not torch.cuda.is_available()]
+    if missing:
+        parser.error(f"{option} {' '.join(missing)}: torch sees no CUDA device on this machine.")
+    return devices
+
+
+def synchronize(device) -> None:
+    """Wait for the work queued on ``device``, so a timing ends when the work does, not when it was launched."""
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def maniskill_env(env):
     """The ManiSkill task (``BaseEnv``) under a TorchRL env built by :func:`mmada_rl.envs.make_env`."""
     while not hasattr(env, "_env"):

@@ -40,7 +40,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
+from common import RESULTS, markdown_table, parse_devices, save_figure, synchronize, write_results  # noqa: E402
 
 
 def random_prompts(layout, batch: int, generator: torch.Generator) -> torch.Tensor:
@@ -93,8 +93,7 @@ def timed(fn, device: torch.device) -> float:
     """Wall time of ``fn()``; work queued on a CUDA device is timed to its end, not its launch."""
     start = time.perf_counter()
     fn()
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+    synchronize(device)
     return time.perf_counter() - start
 
 
@@ -121,12 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--batch, --steps, --replay-paths, --train-batch, --corruptions and --repeats must be positive.")
     if not 0 < args.replay_steps <= max(args.steps):
         parser.error(f"--replay-steps must lie in [1, {max(args.steps)}].")
-    try:
-        device = torch.device(args.device)
-    except RuntimeError as err:
-        parser.error(f"--device: {err}")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        parser.error(f"--device {args.device}: torch sees no CUDA device on this machine.")
+    (device,) = parse_devices(parser, "--device", [args.device])
     torch.set_num_threads(args.threads)
 
     from mmada_rl.diffusion import DenoiserConfig, MaskedDiffusionDenoiser, MaskedDiffusionSampler, SamplerConfig

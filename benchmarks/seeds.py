@@ -159,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--group {group[0]!r} names no source: give a label, then one eval.json or run per seed.")
     groups = [summarize_group(label, [Path(s) for s in sources]) for label, *sources in args.group]
 
+    staged = any(g["reached"] for g in groups)  # a column of stages when any group recorded them
     rows = []
     for g in groups:
         per_seed = "; ".join(f"s{r['seed'] if r['seed'] is not None else '?'}: {r['successes']}/{r['episodes']}"
@@ -166,11 +167,11 @@ def main(argv: list[str] | None = None) -> int:
         p = g["pooled"]
         rows.append([g["label"], g["num_seeds"], g["episodes_per_seed"], per_seed, f"{g['mean']:.2f} ± {g['std']:.2f}",
                      f"{p['successes']}/{p['trials']} = {p['rate']:.2f} [{p['ci'][0]:.2f}, {p['ci'][1]:.2f}]"])
-        if any(grp["reached"] for grp in groups):
+        if staged:
             rows[-1].append("; ".join(f"{flag} {r['episodes']}/{r['trials']}" for flag, r in g["reached"].items()) or "-")
     header = ["configuration", "training seeds", "episodes per seed", "successes per seed",
               "success_once mean ± std over seeds", "pooled [95% CI]"]
-    if any(g["reached"] for g in groups):
+    if staged:
         header.append("episodes reaching each stage, pooled")
     table = markdown_table(header, rows)
 

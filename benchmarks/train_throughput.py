@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
+from common import RESULTS, markdown_table, parse_devices, save_figure, synchronize, write_results  # noqa: E402
 
 from mmada_rl import baselines  # noqa: E402
 from mmada_rl.data import DemoBuffer, RandomShift, make_window_buffer  # noqa: E402
@@ -60,12 +60,6 @@ def parse_variant(text: str) -> tuple[str, Path, dict]:
 #: random-shift runs): the small denoiser cross-attending to its own CNN features of the image.
 BASE_FIELDS = {"chunk_size": 5, "denoiser": "small",
                "denoiser_overrides": {"cross_attention_to_visual": True, "visual_encoder_channels": [32, 64, 128]}}
-
-
-def synchronize(device: torch.device) -> None:
-    """Wait for the device's queued work (a step's time is its end, not its launch)."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float, device: torch.device):
@@ -136,13 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, directory, _ in args.variant:
         if not (directory / "action").exists():
             parser.error(f"variant {name!r}: no fitted tokenizers in {directory}.")
-    try:
-        devices = [torch.device(d) for d in args.devices]
-    except RuntimeError as err:
-        parser.error(f"--devices: {err}")
-    missing = [str(d) for d in devices if d.type == "cuda" and not torch.cuda.is_available()]
-    if missing:
-        parser.error(f"--devices {' '.join(missing)}: torch sees no CUDA device on this machine.")
+    devices = parse_devices(parser, "--devices", args.devices)
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
