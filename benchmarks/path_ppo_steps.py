@@ -53,7 +53,7 @@ def sample_chunks(model, task: str, decisions: int, seed: int):
     from mmada_rl.envs import make_env
     from mmada_rl.policy import MMaDAActor, make_policy_env
 
-    env = make_env(task, image_size=model.image_size, camera_fov=model.config.camera_fov)
+    env = make_env(task, image_size=model.image_size, camera_fov=model.config.camera_fov_for(task))
     env.set_seed(seed)
     penv = make_policy_env(env, MMaDAActor(model), chunk_gamma=0.99)
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():

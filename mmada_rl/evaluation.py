@@ -232,10 +232,10 @@ def _image_size(actor) -> int | None:
     return getattr(actor, "image_size", None)
 
 
-def _camera_fov(actor) -> float | None:
-    """The camera field of view (degrees) of the policy's training images (``None``: the task's own)."""
+def _camera_fov(actor, task: str) -> float | None:
+    """The camera field of view (degrees) of the policy's training images of ``task`` (``None``: the task's own)."""
     if isinstance(actor, MMaDAActor):
-        return actor.model.config.camera_fov
+        return actor.model.config.camera_fov_for(task)
     return getattr(actor, "camera_fov", None)
 
 
@@ -249,7 +249,7 @@ def eval_env_config(actor: TensorDictModuleBase, task: str, image_size: int | No
             f"{policy_size}x{policy_size} images; evaluate with image_size={policy_size}."
         )
     size = policy_size or image_size
-    camera = {"camera_fov": _camera_fov(actor)} if obs_mode == "rgb" else {}
+    camera = {"camera_fov": _camera_fov(actor, task)} if obs_mode == "rgb" else {}
     return EnvConfig(task=task, obs_mode=obs_mode, ignore_terminations=True, **({"image_size": size} if size else {}),
                      **camera, **kwargs)
 

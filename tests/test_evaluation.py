@@ -39,13 +39,18 @@ def load_benchmark(name: str):
 def test_the_evaluation_env_uses_the_camera_the_policy_was_trained_on(model_dir, tmp_path):
     from mmada_rl.baselines import BCConfig, BCPolicy
     from mmada_rl.evaluation import eval_env_config, load_actor
-    from mmada_rl.policy import MMaDAModel
+    from mmada_rl.policy import MMaDAConfig, MMaDAModel
 
     assert eval_env_config(load_actor(model_dir), "PickCube-v1").camera_fov is None  # the task's own camera
     model = MMaDAModel.load(model_dir)
     model.config.camera_fov = 45.0
     narrow = load_actor(model.save(tmp_path / "narrow"))  # saved and loaded with its camera
     assert eval_env_config(narrow, "PickCube-v1").camera_fov == 45.0
+    model.config.camera_fov = {"PickCube-v1": 45.0, "PushCube-v1": 60.0}  # a multi-task model: each task's camera
+    per_task = load_actor(model.save(tmp_path / "per_task"))
+    assert [eval_env_config(per_task, t).camera_fov for t in ("PickCube-v1", "PushCube-v1")] == [45.0, 60.0]
+    with pytest.raises(ValueError, match=r"camera_fov must be a field of view in degrees"):
+        MMaDAConfig(denoiser="tiny", camera_fov={"PushCube-v1": 500})
     bc = BCPolicy(BCConfig(camera_fov=30.0))
     assert eval_env_config(bc, "PickCube-v1").camera_fov == 30.0
     state_bc = BCPolicy(BCConfig(camera_fov=30.0, obs_mode="state", state_dim=42))

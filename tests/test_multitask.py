@@ -98,14 +98,27 @@ def test_tokenizers_fitted_on_every_task(buffers):
 
 
 @pytest.fixture(scope="module")
-def multitask_run(pick_demos, push_demos, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
-    """Three toy steps of one model on PickCube-v1 and PushCube-v1 (no window in the planners' leading
-    hold; a foreground-weighted image tokenizer; no joint velocities in the sequence), a one-episode
-    evaluation of each task."""
+def push_demos_fov60(tmp_path_factory) -> Path:
+    """One PushCube-v1 planner demonstration through a 60° camera."""
+    from mmada_rl.data.collect import collect
+    from mmada_rl.envs.maniskill import EnvConfig
+
+    out = tmp_path_factory.mktemp("demos60") / "PushCube-v1-fov60"
+    assert collect(out, EnvConfig(task="PushCube-v1", camera_fov=60), episodes=1, progress=False).new_episodes == 1
+    return out
+
+
+@pytest.fixture(scope="module")
+def multitask_run(pick_demos, push_demos_fov60, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """Three toy steps of one model on PickCube-v1 (the task's own camera) and PushCube-v1 (a 60° camera),
+    each task's buffer and camera named in a mapping (no window in the planners' leading hold; a
+    foreground-weighted image tokenizer; no joint velocities in the sequence), a one-episode evaluation
+    of each task."""
     run_dir = tmp_path_factory.mktemp("multitask") / "multi"
     proc = subprocess.run(
         [sys.executable, str(RECIPE), f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]",
-         f"data.dir='{pick_demos.parent}/{{task}}'", "data.collect_episodes=0", "optim.total_steps=3",
+         f"data.dir={{PickCube-v1: '{pick_demos}', PushCube-v1: '{push_demos_fov60}'}}",
+         "env.camera_fov={PickCube-v1: null, PushCube-v1: 60}", "data.collect_episodes=0", "optim.total_steps=3",
          "checkpoint.interval=3", "eval.episodes=1", "eval.max_episode_steps=5", "num_threads=1",
          "data.skip_idle_start=true",  # the option end to end (its effect: tests/test_data.py)
          "tokenizers.image.foreground_weight=5",  # likewise (its effect: tests/test_tokenizers.py)
@@ -131,13 +144,32 @@ def test_multitask_recipe_trains_and_evaluates_each_task(multitask_run):
     assert model["layout"]["layout"]["proprio_tokens"] == 29 - 9  # PickCube's state, the larger of the two
 
 
-def test_multitask_without_a_task_placeholder_is_one_clear_error(pick_demos, tmp_path):
+def test_multitask_model_keeps_each_tasks_camera(multitask_run):
+    from mmada_rl.evaluation import eval_env_config, load_actor
+
+    run_dir, _ = multitask_run
+    actor = load_actor(run_dir / "checkpoints" / "step_00000003")
+    assert actor.model.config.camera_fov == {"PickCube-v1": None, "PushCube-v1": 60.0}
+    assert eval_env_config(actor, "PushCube-v1").camera_fov == 60.0  # what the recipe's evaluation built
+    assert eval_env_config(actor, "PickCube-v1").camera_fov is None
+    with pytest.raises(ValueError, match="not of 'StackCube-v1'"):  # a task it has no camera for
+        eval_env_config(actor, "StackCube-v1")
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["data.dir={demos}"], "put {task} in data.dir"),
+    (["data.dir={{PickCube-v1: '{demos}'}}"], "data.dir gives the buffers of ['PickCube-v1'] but not of 'PushCube-v1'"),
+    (["data.dir='{parent}/{{task}}'", "env.camera_fov={{PickCube-v1: null}}"],
+     "camera_fov gives the cameras of ['PickCube-v1'] but not of 'PushCube-v1'"),
+])
+def test_multitask_bad_buffers_or_cameras_are_one_clear_error(pick_demos, push_demos, tmp_path, overrides, message):
+    overrides = [o.format(demos=pick_demos, parent=pick_demos.parent) for o in overrides]
     proc = subprocess.run(
-        [sys.executable, str(RECIPE), f"run_dir={tmp_path / 'bad'}", "tasks=[PickCube-v1,PushCube-v1]",
-         f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=1", "eval.episodes=0"],
+        [sys.executable, str(RECIPE), f"run_dir={tmp_path / 'bad'}", "tasks=[PickCube-v1,PushCube-v1]", *overrides,
+         "data.collect_episodes=0", "optim.total_steps=1", "eval.episodes=0"],
         cwd=REPO, capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode != 0 and "put {task} in data.dir" in proc.stderr
+    assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
 
 
 def test_pretraining_report_gives_one_row_per_task(multitask_run, toy_pretrain_run, tmp_path):

@@ -56,6 +56,11 @@ _RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr"
 #: filtered self-imitation of the executed actions of the greedy policy's noisy rollouts (goal tokens weighted too)
 _RFT_NOISE = [*(a for a in _RFT if not a.startswith("collector.temperature")), "collector.action_noise=0.1",
               "loss.rwr.weight_goal=true"]
+#: the same noisy rollouts, each chunk's GAE advantage (a learned value of the dense reward) standardised over the
+#: batch's online rows and used as a signed weight: chunks better than expected are pulled up, worse ones pushed down
+_GAE_NOISE = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=dense",
+              "advantage.estimator=gae", "loss.rwr.weighting=signed", "loss.rwr.standardize_advantage=true",
+              "loss.rwr.normalize_weights=true", "collector.action_noise=0.05", "loss.rwr.weight_goal=true"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -83,6 +88,9 @@ METHODS = {
     "mmada_rft_noise_small": ("MMaDA-VLA + filtered self-imitation of the greedy policy's noisy rollouts, half the noise "
                               "(ours: N(0, 0.05^2) on the arm)", "rgb+proprio",
                               [a.replace("action_noise=0.1", "action_noise=0.05") for a in _RFT_NOISE], True),
+    "mmada_gae_noise_small": ("MMaDA-VLA + per-chunk GAE advantages, zero-mean signed weights, on the greedy policy's "
+                              "noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, goals weighted too)",
+                              "rgb+proprio", _GAE_NOISE, True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import asdict, dataclass
+from collections.abc import Mapping
 from typing import Callable, Literal
 
 import gymnasium as gym
@@ -116,6 +117,22 @@ class EnvConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def task_camera_fov(camera_fov: float | Mapping[str, float | None] | None, task: str) -> float | None:
+    """The camera field of view (degrees) of ``task`` under ``camera_fov``: one value for every task
+    (``None``: each task's own camera), or a mapping ``{task: degrees}`` for a multi-task model whose
+    tasks' demonstrations came through different cameras (e.g. ``{"PushCube-v1": 60, "PickCube-v1": 45}``).
+
+    Raises:
+        ValueError: ``camera_fov`` is a mapping without ``task``.
+    """
+    if isinstance(camera_fov, Mapping):
+        if task not in camera_fov:
+            raise ValueError(f"camera_fov gives the cameras of {sorted(camera_fov)} but not of {task!r}; add "
+                             f"{task}: <degrees> (null: the task's own camera).")
+        return camera_fov[task]
+    return camera_fov
 
 
 class CanonicalObservation(gym.Wrapper):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from mmada_rl.diffusion.denoiser import DenoiserConfig, MaskedDiffusionDenoiser
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig, is_greedy
+from mmada_rl.envs.maniskill import EnvConfig, task_camera_fov
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
     ACTION_IS_PAD_KEY,
@@ -91,7 +93,9 @@ class MMaDAConfig:
         denoiser_overrides: fields overriding the preset (e.g. ``{"attention": "block_causal"}``).
         sampler: parallel-decoding options.
         camera_fov: field of view (degrees) of the camera whose images the policy was
-            trained on; ``None``: the task's own. Evaluation builds its env with it.
+            trained on; ``None``: the task's own. Evaluation builds its env with it. A
+            multi-task model may map each task to its own (``{"PushCube-v1": 60.0,
+            "PickCube-v1": 45.0}``; see :meth:`camera_fov_for`).
         action_readout: how a greedily decoded chunk becomes actions: ``"token"`` (the
             committed bins' centres, the paper's) or ``"mean"`` (each dimension's expected
             value under the distribution its token was committed from; uniform-bin action
@@ -109,7 +113,7 @@ class MMaDAConfig:
     denoiser: str | dict = "small"
     denoiser_overrides: dict = field(default_factory=dict)
     sampler: dict = field(default_factory=dict)
-    camera_fov: float | None = None
+    camera_fov: float | dict[str, float | None] | None = None
     action_readout: str = "token"
 
     def __post_init__(self) -> None:
@@ -122,12 +126,20 @@ class MMaDAConfig:
         if self.state_differences and not self.use_proprio:
             raise ValueError(f"state_differences={self.state_differences} needs use_proprio=True.")
         _check_action_readout(self.action_readout)
+        if isinstance(self.camera_fov, Mapping):
+            self.camera_fov = {str(task): None if fov is None else float(fov) for task, fov in self.camera_fov.items()}
+        for task in self.camera_fov if isinstance(self.camera_fov, dict) else [None]:
+            EnvConfig(**({"task": task} if task else {}), camera_fov=self.camera_fov_for(task))  # validates
         denoiser = self.denoiser_config()  # validates
         if not self.observation_tokens and denoiser.visual_encoder_channels is None:
             raise ValueError("observation_tokens=false leaves the policy blind unless the denoiser encodes the "
                              "image itself: set denoiser_overrides.cross_attention_to_visual=true and "
                              "visual_encoder_channels (e.g. [32, 64, 128]).")
         self.sampler_config()
+
+    def camera_fov_for(self, task: str | None) -> float | None:
+        """The field of view (degrees) of ``task``'s camera in the training images (``None``: the task's own)."""
+        return task_camera_fov(self.camera_fov, task)
 
     def denoiser_config(self) -> DenoiserConfig:
         if isinstance(self.denoiser, str):

@@ -113,7 +113,8 @@ def exploration_sampler(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionSa
 def make_env_config(cfg: DictConfig, model: MMaDAModel) -> EnvConfig:
     e = cfg.env
     return EnvConfig(
-        task=e.task, image_size=model.image_size, camera_fov=model.config.camera_fov, control_mode=e.control_mode, reward=e.reward,
+        task=e.task, image_size=model.image_size, camera_fov=model.config.camera_fov_for(e.task), control_mode=e.control_mode,
+        reward=e.reward,
         max_episode_steps=e.max_episode_steps, num_workers=int(e.num_workers), train_seed=int(e.train_seed),
         group_size=int(cfg.advantage.group_size) if cfg.advantage.estimator == "group" else 1,
     )
@@ -283,7 +284,7 @@ def make_online_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
 
 
 def open_demo_buffer(cfg: DictConfig, model: MMaDAModel) -> DemoBuffer:
-    env = EnvConfig(task=cfg.env.task, image_size=model.image_size, camera_fov=model.config.camera_fov,
+    env = EnvConfig(task=cfg.env.task, image_size=model.image_size, camera_fov=model.config.camera_fov_for(cfg.env.task),
                     control_mode=cfg.env.control_mode)
     return open_demos(cfg.demos.dir, env, collect_episodes=int(cfg.demos.collect_episodes), prefix=f"{PREFIX} ")
 

@@ -8,7 +8,7 @@ from omegaconf import DictConfig, OmegaConf
 from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer, window_skips
 from mmada_rl.data.windows import check_state_differences
 from mmada_rl.diffusion import FullMaskMixture, UniformNoiseSchedule, make_noise_schedule
-from mmada_rl.envs.maniskill import EnvConfig
+from mmada_rl.envs.maniskill import EnvConfig, task_camera_fov
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
@@ -20,8 +20,11 @@ from mmada_rl.training.demos import open_demos
 from mmada_rl.training.validation import fixed_windows
 
 
-def make_env_config(cfg: DictConfig) -> EnvConfig:
-    return EnvConfig(**OmegaConf.to_container(cfg.env))
+def make_env_config(cfg: DictConfig, task: str | None = None) -> EnvConfig:
+    """``env`` for ``task`` (default ``env.task``); a multi-task run's ``env.camera_fov`` may map each task to its camera."""
+    env = OmegaConf.to_container(cfg.env)
+    task = task or env["task"]
+    return EnvConfig(**{**env, "task": task, "camera_fov": task_camera_fov(env.get("camera_fov"), task)})
 
 
 def task_list(cfg: DictConfig) -> list[str]:
@@ -35,14 +38,24 @@ def task_list(cfg: DictConfig) -> list[str]:
     return tasks
 
 
+def task_dir(directory, task: str, option: str = "data.dir") -> str:
+    """``task``'s buffer: ``directory`` with ``{task}`` filled in, or its entry when it maps each task to a buffer."""
+    if isinstance(directory, (dict, DictConfig)):
+        if task not in directory:
+            raise ValueError(f"{option} gives the buffers of {sorted(directory)} but not of {task!r}; add {task}: <dir>.")
+        return str(directory[task])
+    return str(directory).format(task=task)
+
+
 def make_demo_buffers(cfg: DictConfig) -> list[DemoBuffer]:
-    """The demonstration buffer of each task (``data.dir`` with ``{task}`` replaced); collected first when missing or short."""
+    """The demonstration buffer of each task (``data.dir`` with ``{task}`` replaced, or a mapping task -> dir);
+    collected first when missing or short."""
     tasks = task_list(cfg)
-    if len(tasks) > 1 and "{task}" not in str(cfg.data.dir):
-        raise ValueError(f"a multi-task run needs one buffer per task: put {{task}} in data.dir (got {cfg.data.dir!r}), "
-                         "e.g. data.dir='data/{task}'.")
-    env = make_env_config(cfg)
-    return [open_demos(str(cfg.data.dir).format(task=task), EnvConfig(**{**env.to_dict(), "task": task}),
+    directory = cfg.data.dir
+    if len(tasks) > 1 and not isinstance(directory, DictConfig) and "{task}" not in str(directory):
+        raise ValueError(f"a multi-task run needs one buffer per task: put {{task}} in data.dir (got {directory!r}), "
+                         "e.g. data.dir='data/{task}', or map each task to its buffer.")
+    return [open_demos(task_dir(directory, task), make_env_config(cfg, task),
                        collect_episodes=int(cfg.data.collect_episodes), prefix="[pretrain] ") for task in tasks]
 
 
@@ -99,7 +112,7 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         denoiser=m.denoiser if isinstance(m.denoiser, str) else OmegaConf.to_container(m.denoiser),
         denoiser_overrides=OmegaConf.to_container(m.denoiser_overrides),
         sampler={"num_steps": int(m.num_denoise_steps), "schedule": m.sampler_schedule, "kernel": cfg.loss.kernel},
-        camera_fov=cfg.env.camera_fov,
+        camera_fov=OmegaConf.to_container(fov) if isinstance(fov := cfg.env.camera_fov, DictConfig) else fov,
         action_readout=str(m.action_readout),
     )
     return MMaDAModel(config, tokenizers).to(cfg.device)
@@ -179,14 +192,13 @@ def make_logger(cfg: DictConfig, run_dir: Path):
 
 
 def make_validation(cfg: DictConfig, model: MMaDAModel) -> list | None:
-    """Fixed window batches of the held-out buffer(s) ``validation.dir`` (``{task}`` filled in per task), checked
+    """Fixed window batches of the held-out buffer(s) ``validation.dir`` (as ``data.dir``: one per task), checked
     against the env config like the training demonstrations; ``None`` without ``validation.dir``."""
     if cfg.validation.dir is None:
         return None
-    env = make_env_config(cfg)
     batches = []
     for task in task_list(cfg):
-        buffer = open_demos(str(cfg.validation.dir).format(task=task), EnvConfig(**{**env.to_dict(), "task": task}))
+        buffer = open_demos(task_dir(cfg.validation.dir, task, "validation.dir"), make_env_config(cfg, task))
         batches += fixed_windows(buffer, model.config.chunk_size, int(cfg.validation.minibatches),
                                  int(cfg.validation.batch_size), seed=int(cfg.seed))
     return batches
