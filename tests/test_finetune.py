@@ -517,17 +517,24 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     ("noisy_self_imitation", ["env.reward=sparse", "advantage.estimator=return", "loss.rwr.weighting=binary",
                               "loss.rwr.normalize_weights=true", "loss.rwr.weight_goal=true", "collector.action_noise=0.1",
                               "eval.episodes=0"], 30),
+    ("noisy_gae_signed", ["advantage.estimator=gae", "loss.rwr.weighting=signed", "loss.rwr.standardize_advantage=true",
+                          "loss.rwr.normalize_weights=true", "loss.rwr.weight_goal=true", "collector.action_noise=0.1",
+                          "eval.episodes=0"], 30),
 ])
-def test_critic_free_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
+def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
-    the successful rollouts."""
+    the successful rollouts. Per-chunk ones: the noisy rollouts' chunks weighted by their GAE advantages, signed."""
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}", *overrides,
                       "env.max_episode_steps=10", f"collector.total_env_steps={steps}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"{steps} env steps" in proc.stdout and "0 updates" not in proc.stdout
     # the start-up line describes the updates this algorithm makes (PPO trains on fresh decisions only)
     assert ("epochs over each iteration's decisions" in proc.stdout) == (name == "ppo_group")
-    assert ("exploration: greedy chunks + N(0, 0.1^2)" in proc.stdout) == (name == "noisy_self_imitation")
+    assert ("exploration: greedy chunks + N(0, 0.1^2)" in proc.stdout) == name.startswith("noisy")
+    if name == "noisy_gae_signed":  # a value network was trained and some chunks were pushed down
+        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        assert (scalars / "value_loss.csv").read_text().strip()
+        assert any(float(line.split(",")[1]) > 0 for line in (scalars / "negative_fraction.csv").read_text().splitlines())
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
         history = json.loads((tmp_path / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
