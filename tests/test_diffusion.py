@@ -751,11 +751,12 @@ def test_several_corruptions_per_sample_score_the_repeated_batch():
         MaskedDiffusionLoss(net, corruptions_per_sample=0)
 
 
-@pytest.mark.parametrize("module", ["schedules", "forward_process", "denoiser", "sampler", "objectives"])
+@pytest.mark.parametrize("module", ["schedules", "forward_process", "denoiser", "sampler", "objectives.masked_diffusion",
+                                    "objectives.reward_weighted", "objectives.path_ppo"])
 def test_docstring_examples_run(module):
     import doctest
     import importlib
 
-    name = "mmada_rl.objectives.masked_diffusion" if module == "objectives" else f"mmada_rl.diffusion.{module}"
+    name = f"mmada_rl.{module}" if module.startswith("objectives") else f"mmada_rl.diffusion.{module}"
     result = doctest.testmod(importlib.import_module(name))
     assert result.failed == 0 and result.attempted > 0

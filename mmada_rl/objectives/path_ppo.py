@@ -73,10 +73,18 @@ class PathPPOLoss(LossModule):
     recomputed log-probabilities match the sampler's at unchanged parameters.
 
     Examples:
-        >>> loss_fn = PathPPOLoss(model.denoiser, clip_epsilon=0.2)
-        >>> rollout = penv.env.rollout(4, penv.policy)                  # sampled chunks with their paths
-        >>> rollout.set("advantage", torch.randn(rollout.shape))
-        >>> loss_fn(rollout)["loss_objective"].backward()
+        >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+        >>> from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+        >>> from mmada_rl.diffusion import DenoiserConfig, MaskedDiffusionSampler, SamplerConfig
+        >>> layout = SequenceLayout(LayoutConfig(4, 4, 4, 2, 3), UnifiedVocabulary(VocabularyConfig(32, 16, 8)))
+        >>> denoiser = MaskedDiffusionDenoiser(DenoiserConfig.preset("tiny"), layout).eval()
+        >>> prompt = layout.assemble(torch.zeros(8, 4, dtype=torch.long), torch.zeros(8, 4, dtype=torch.long))
+        >>> sampled = MaskedDiffusionSampler(SamplerConfig(num_steps=4)).sample(denoiser, prompt, greedy=False)
+        >>> td = TensorDict({(VLA_ACTION_KEY, "path"): sampled.path, ADVANTAGE_KEY: torch.randn(8)}, batch_size=[8])
+        >>> out = PathPPOLoss(denoiser, clip_epsilon=0.2)(td)  # in a collector batch: the actor's stored paths
+        >>> round(float(out["ratio_mean"]), 4)  # the parameters have not moved since sampling
+        1.0
+        >>> out["loss_objective"].backward()
     """
 
     @dataclass

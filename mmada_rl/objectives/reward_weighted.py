@@ -95,8 +95,17 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
     ``negative_fraction``, ``action_accuracy``, ``noise_level``, ``num_scored``).
 
     Examples:
-        >>> loss_fn = RewardWeightedDiffusionLoss(denoiser, weighting="exp", temperature=0.5)
-        >>> td = TensorDict({SEQUENCE_KEY: ids, ADVANTAGE_KEY: adv, IS_DEMO_KEY: is_demo}, batch_size=[B])
+        >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
+        >>> from mmada_rl.tokenizers.layout import LayoutConfig, SequenceLayout
+        >>> from mmada_rl.diffusion import DenoiserConfig
+        >>> from mmada_rl.keys import SEQUENCE_KEY
+        >>> layout = SequenceLayout(LayoutConfig(4, 4, 4, 2, 3), UnifiedVocabulary(VocabularyConfig(32, 16, 8)))
+        >>> denoiser = MaskedDiffusionDenoiser(DenoiserConfig.preset("tiny"), layout)
+        >>> loss_fn = RewardWeightedDiffusionLoss(denoiser, weighting="signed", standardize_advantage=True)
+        >>> ids = layout.assemble(torch.zeros(8, 4, dtype=torch.long), torch.zeros(8, 4, dtype=torch.long),
+        ...                       torch.zeros(8, 4, dtype=torch.long), torch.randint(8, (8, 2, 3)))
+        >>> is_demo = torch.arange(8) < 4  # four demonstration windows, four online chunks
+        >>> td = TensorDict({SEQUENCE_KEY: ids, ADVANTAGE_KEY: torch.randn(8), IS_DEMO_KEY: is_demo}, batch_size=[8])
         >>> losses = loss_fn(td)
         >>> (losses["loss_action"] + losses["loss_goal"]).backward()
     """
