@@ -125,7 +125,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
         (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
         (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
-        (["loss.full_mask_prob=1.5"], "loss.full_mask_prob=1.5 must lie in [0, 1]"),
+        (["loss.full_mask_prob=1.5"], "loss.full_mask_prob must lie in [0, 1], got 1.5"),
         (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
         (["model.action_readout=mean"], "VQActionTokenizer codes have no mean"),
         (["model.state_differences=[[26,19]]"], "covers 29 dimensions, not the demonstrations' 29 plus the 1 of "

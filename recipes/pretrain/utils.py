@@ -8,6 +8,7 @@ from omegaconf import DictConfig, OmegaConf
 from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer, window_skips
 from mmada_rl.data.windows import check_state_differences
 from mmada_rl.diffusion import FullMaskMixture, UniformNoiseSchedule, make_noise_schedule
+from mmada_rl.diffusion.schedules import check_probability
 from mmada_rl.envs.maniskill import EnvConfig, task_camera_fov
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
@@ -141,9 +142,8 @@ def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
 def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     l = cfg.loss
     schedule = UniformNoiseSchedule(float(l.schedule_low), float(l.schedule_high)) if l.schedule == "uniform" else l.schedule
-    full = float(l.get("full_mask_prob", 0.0))
-    if not 0.0 <= full <= 1.0:
-        raise ValueError(f"loss.full_mask_prob={full} must lie in [0, 1] (the share of windows with every target masked).")
+    full = float(l.get("full_mask_prob", 0.0))  # the share of windows with every target masked
+    check_probability("loss.full_mask_prob", full)
     if full > 0:
         schedule = FullMaskMixture(make_noise_schedule(schedule), full)
     sigma = float(l.action_label_sigma)
