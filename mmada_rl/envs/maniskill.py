@@ -24,7 +24,7 @@ from torchrl.envs import Compose, GymWrapper, ParallelEnv, RenameTransform, Step
 from torchrl.envs.gym_like import default_info_dict_reader
 
 from mmada_rl.envs.instruction import InstructionTransform
-from mmada_rl.envs.tasks import task_spec
+from mmada_rl.envs.tasks import task_option, task_spec
 from mmada_rl.keys import GROUP_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.envs.vulkan import VulkanUnavailableError, is_render_device_error
 
@@ -127,12 +127,7 @@ def task_camera_fov(camera_fov: float | Mapping[str, float | None] | None, task:
     Raises:
         ValueError: ``camera_fov`` is a mapping without ``task``.
     """
-    if isinstance(camera_fov, Mapping):
-        if task not in camera_fov:
-            raise ValueError(f"camera_fov gives the cameras of {sorted(camera_fov)} but not of {task!r}; add "
-                             f"{task}: <degrees> (null: the task's own camera).")
-        return camera_fov[task]
-    return camera_fov
+    return task_option(camera_fov, task, "camera_fov", "cameras", "<degrees> (null: the task's own camera)")
 
 
 class CanonicalObservation(gym.Wrapper):

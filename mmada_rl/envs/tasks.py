@@ -5,6 +5,7 @@ One place for per-task facts. Any other ManiSkill task id still works with
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 
@@ -87,3 +88,18 @@ def task_spec(task_id: str) -> TaskSpec:
         f"{', '.join(t for t in TASKS if t not in SUPPORTED_TASKS)}. Any other ManiSkill3 "
         "task id that builds without asset downloads works too (see `mmada-rl tasks`)."
     )
+
+
+def task_option(value, task: str, option: str, what: str, hint: str):
+    """``task``'s value of a per-task option: ``value`` itself (one value for every task), or its entry when
+    ``value`` maps each task to its own (a multi-task run whose tasks differ, e.g. in camera or buffer).
+
+    Raises:
+        ValueError: ``value`` is a mapping without ``task`` (naming ``option``, the ``what`` it gives, and
+            ``hint``, what to add).
+    """
+    if isinstance(value, Mapping):
+        if task not in value:
+            raise ValueError(f"{option} gives the {what} of {sorted(value)} but not of {task!r}; add {task}: {hint}.")
+        return value[task]
+    return value

@@ -1,6 +1,7 @@
 """Factories of the pretraining recipe: each ``make_*`` turns one config section into objects."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -10,6 +11,7 @@ from mmada_rl.data.windows import check_state_differences
 from mmada_rl.diffusion import FullMaskMixture, UniformNoiseSchedule, make_noise_schedule
 from mmada_rl.diffusion.schedules import check_probability
 from mmada_rl.envs.maniskill import EnvConfig, task_camera_fov
+from mmada_rl.envs.tasks import task_option
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
@@ -41,11 +43,8 @@ def task_list(cfg: DictConfig) -> list[str]:
 
 def task_dir(directory, task: str, option: str = "data.dir") -> str:
     """``task``'s buffer: ``directory`` with ``{task}`` filled in, or its entry when it maps each task to a buffer."""
-    if isinstance(directory, (dict, DictConfig)):
-        if task not in directory:
-            raise ValueError(f"{option} gives the buffers of {sorted(directory)} but not of {task!r}; add {task}: <dir>.")
-        return str(directory[task])
-    return str(directory).format(task=task)
+    path = str(task_option(directory, task, option, "buffers", "<dir>"))
+    return path if isinstance(directory, Mapping) else path.format(task=task)
 
 
 def make_demo_buffers(cfg: DictConfig) -> list[DemoBuffer]:
@@ -53,7 +52,7 @@ def make_demo_buffers(cfg: DictConfig) -> list[DemoBuffer]:
     collected first when missing or short."""
     tasks = task_list(cfg)
     directory = cfg.data.dir
-    if len(tasks) > 1 and not isinstance(directory, DictConfig) and "{task}" not in str(directory):
+    if len(tasks) > 1 and not isinstance(directory, Mapping) and "{task}" not in str(directory):
         raise ValueError(f"a multi-task run needs one buffer per task: put {{task}} in data.dir (got {directory!r}), "
                          "e.g. data.dir='data/{task}', or map each task to its buffer.")
     return [open_demos(task_dir(directory, task), make_env_config(cfg, task),
@@ -113,7 +112,7 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         denoiser=m.denoiser if isinstance(m.denoiser, str) else OmegaConf.to_container(m.denoiser),
         denoiser_overrides=OmegaConf.to_container(m.denoiser_overrides),
         sampler={"num_steps": int(m.num_denoise_steps), "schedule": m.sampler_schedule, "kernel": cfg.loss.kernel},
-        camera_fov=OmegaConf.to_container(fov) if isinstance(fov := cfg.env.camera_fov, DictConfig) else fov,
+        camera_fov=cfg.env.camera_fov,  # a per-task mapping becomes a plain dict in MMaDAConfig
         action_readout=str(m.action_readout),
     )
     return MMaDAModel(config, tokenizers).to(cfg.device)
