@@ -114,6 +114,60 @@ def test_group_relative_advantages():
     torch.testing.assert_close(adv, torch.tensor([1.0, -1.0, 0.0, 0.0, 0.0]))
 
 
+def _chunk_episode(step_rewards: list[float], success: bool, k: int = 5) -> TensorDict:
+    """Chunk-level transitions of one episode as the fine-tuning collector records them: each decision's reward is
+    the discounted sum (gamma 0.99) of its ``k`` steps' rewards, the last decision runs what is left."""
+    from mmada_rl.keys import STEP_KEY
+
+    chunks = [torch.tensor(step_rewards[i:i + k]) for i in range(0, len(step_rewards), k)]
+    n = len(chunks)
+    reward = torch.stack([(c * 0.99 ** torch.arange(len(c))).sum() for c in chunks]).reshape(n, 1)
+    start = torch.arange(n).reshape(n, 1) * k
+    done = torch.zeros(n, 1, dtype=torch.bool)
+    done[-1] = True
+    return TensorDict({"obs": torch.zeros(n, 1), STEP_KEY: start, ("next", "obs"): torch.zeros(n, 1),
+                       ("next", STEP_KEY): start + torch.tensor([len(c) for c in chunks]).reshape(n, 1),
+                       ("next", "reward"): reward, ("next", "done"): done, ("next", "terminated"): done & success,
+                       ("next", "truncated"): done & (not success), ("next", "success"): done & success}, [n])
+
+
+@pytest.mark.parametrize("absorbing", [False, True])
+def test_absorbing_success_makes_finishing_worth_more_than_lingering(absorbing):
+    """PickCube-v1's dense reward pays ~0.57 per step with the cube at the goal, 1 on the success step, which ends the
+    episode. Lingering for the 50 steps outscores succeeding at step 18 unless the success is absorbing."""
+    from torchrl.modules import ValueOperator
+    from torchrl.objectives.value import GAE
+
+    critic = torch.nn.Linear(1, 1)
+    torch.nn.init.zeros_(critic.weight), torch.nn.init.zeros_(critic.bias)  # V = 0: the advantage is the return
+    gae = GAE(gamma=0.99 ** 5, lmbda=1.0, value_network=ValueOperator(critic, in_keys=["obs"]), average_gae=False)
+    cfg = OmegaConf.create({"advantage": {"absorbing_success": absorbing, "gamma": 0.99}})
+    first = {}
+    for name, episode in [("linger", _chunk_episode([0.57] * 50, False)), ("finish", _chunk_episode([0.57] * 17 + [1.0], True))]:
+        raw = episode.get(("next", "reward")).clone()
+        recipe_utils().absorb_success(cfg, episode)
+        changed = ~torch.isclose(episode.get(("next", "reward")), raw)
+        assert changed.tolist() == (episode.get(("next", "success")) if absorbing else torch.zeros_like(changed)).tolist()
+        with torch.no_grad():
+            first[name] = float(gae(episode).get(ADVANTAGE_KEY)[0])
+    assert (first["finish"] > first["linger"]) == absorbing
+    # the discounted returns from the first step; the success's chunk ran 3 steps, it gains 0.99 ** 3 / (1 - 0.99)
+    # discounted by the 15 steps before it
+    assert first["linger"] == pytest.approx(0.57 * (1 - 0.99 ** 50) / 0.01, rel=1e-4)
+    finish = 0.57 * (1 - 0.99 ** 17) / 0.01 + 0.99 ** 17 + (0.99 ** 18 / 0.01 if absorbing else 0.0)
+    assert first["finish"] == pytest.approx(finish, rel=1e-4)
+
+
+def test_absorbing_success_reward_refuses_an_undiscounted_value():
+    from mmada_rl.objectives.advantages import absorbing_success_reward
+
+    reward, success = torch.zeros(2, 1), torch.tensor([[False], [True]])
+    with pytest.raises(ValueError, match="0 < gamma < 1"):
+        absorbing_success_reward(reward, success, torch.tensor([5, 5]), gamma=1.0)
+    with pytest.raises(ValueError, match="success must be shaped as reward"):
+        absorbing_success_reward(reward, success.reshape(-1), torch.tensor([5, 5]), gamma=0.99)
+
+
 # -- reward-weighted loss -----------------------------------------------------------------
 def _two_chunks(model: MMaDAModel, toy_pretrain_run) -> TensorDict:
     """Two rows with the same observation and different action tokens, every target masked."""
@@ -571,6 +625,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["algo=ppo", "collector.action_noise=0.1"], "path-likelihood PPO needs the sampled paths"),
     (["collector.action_noise=-0.1"], "collector.action_noise must be >= 0"),
     (["device=cuda"], "the fine-tuning recipe runs on the CPU only"),
+    (["advantage.gamma=1.0"], "it needs advantage.gamma < 1"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
@@ -584,6 +639,10 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     fresh = compare.command("mmada_rwr", "PickCube-v1", 0, 1000, out, "runs/pretrain_{task}_s{seed}", 5, 500)
     assert "pretrained=runs/pretrain_PickCube-v1_s0" in fresh and "collector.total_env_steps=1000" in fresh
     assert "checkpoint.resume=true" not in fresh and "demos.dir=data/PickCube-v1" in fresh
+    # the methods recorded before success became absorbing keep their setting; the new one takes the recipe's default
+    assert "advantage.absorbing_success=false" in fresh
+    assert "advantage.absorbing_success=true" in compare.command("mmada_gae_noise_absorbing", "PickCube-v1", 0, 1000, out,
+                                                                 "x", 5, 500)
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")

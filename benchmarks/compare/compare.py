@@ -49,8 +49,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 from pretraining import read_scalar  # noqa: E402
 
+#: the fine-tuning recipe as the methods below were run and recorded: a success ended the episode and was worth its
+#: step's reward alone (advantage.absorbing_success=false); kept so that their recorded results reproduce
+_FINETUNE = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "advantage.absorbing_success=false"]
 #: filtered self-imitation: sparse reward, episode returns as advantages, binary weights
-_RFT = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=sparse",
+_RFT = [*_FINETUNE, "algo=rwr", "env.reward=sparse",
         "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
         "collector.temperature=0.5"]
 #: filtered self-imitation of the executed actions of the greedy policy's noisy rollouts (goal tokens weighted too)
@@ -58,11 +61,13 @@ _RFT_NOISE = [*(a for a in _RFT if not a.startswith("collector.temperature")), "
               "loss.rwr.weight_goal=true"]
 #: the same noisy rollouts, each chunk's GAE advantage (a learned value of the dense reward) standardised over the
 #: batch's online rows and used as a signed weight: chunks better than expected are pulled up, worse ones pushed down
-_GAE_NOISE = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "env.reward=dense",
+_GAE_NOISE = [*_FINETUNE, "algo=rwr", "env.reward=dense",
               "advantage.estimator=gae", "loss.rwr.weighting=signed", "loss.rwr.standardize_advantage=true",
               "loss.rwr.normalize_weights=true", "collector.action_noise=0.05", "loss.rwr.weight_goal=true"]
+#: the same with each success absorbing (the recipe's default): the succeeding chunk also earns gamma**j / (1 - gamma)
+_GAE_NOISE_ABSORBING = [a.replace("absorbing_success=false", "absorbing_success=true") for a in _GAE_NOISE]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
-_PPO_GROUP = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo", "env.reward=sparse",
+_PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
 #: the same, replaying 2 of the 10 denoising steps of each path per update
 _PPO_GROUP_2STEPS = [*_PPO_GROUP, "loss.ppo.denoising_steps=2"]
@@ -71,9 +76,9 @@ _STATE_DEMOS = ["env.obs_mode=state", "data.dir=data/state/${env.task}"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
 METHODS = {
     "mmada_rwr": ("MMaDA-VLA + reward-weighted diffusion (ours)", "rgb+proprio",
-                  ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr"], True),
+                  [*_FINETUNE, "algo=rwr"], True),
     "mmada_rwr_conservative": ("MMaDA-VLA + reward-weighted diffusion, conservative (ours)", "rgb+proprio",
-                               ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr",
+                               [*_FINETUNE, "algo=rwr",
                                 "collector.temperature=0.5", "loss.rwr.standardize_advantage=true",
                                 "loss.rwr.temperature=0.5", "loss.rwr.kl_coef=0.5"], True),
     "mmada_rft": ("MMaDA-VLA + filtered self-imitation (ours: binary weights, sparse reward)", "rgb+proprio", _RFT, True),
@@ -91,11 +96,15 @@ METHODS = {
     "mmada_gae_noise_small": ("MMaDA-VLA + per-chunk GAE advantages, zero-mean signed weights, on the greedy policy's "
                               "noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, goals weighted too)",
                               "rgb+proprio", _GAE_NOISE, True),
+    "mmada_gae_noise_absorbing": ("MMaDA-VLA + per-chunk GAE advantages, success absorbing, zero-mean signed weights, "
+                                  "on the greedy policy's noisy rollouts (ours: dense reward, a success worth "
+                                  "1 / (1 - gamma) more, N(0, 0.05^2) on the arm, goals weighted too)",
+                                  "rgb+proprio", _GAE_NOISE_ABSORBING, True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
-                         ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=rwr", "demos.ratio=1.0",
+                         [*_FINETUNE, "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),
     "mmada_ppo": ("MMaDA-VLA + path-likelihood PPO (ours)", "rgb+proprio",
-                  ["recipes/finetune/finetune.py", "--config-name", "maniskill", "algo=ppo"], True),
+                  [*_FINETUNE, "algo=ppo"], True),
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
                         _PPO_GROUP, True),
     "mmada_ppo_group_demos": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages, the "

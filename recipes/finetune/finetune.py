@@ -16,7 +16,11 @@ Advantages per decision come from a learned value function with TorchRL's GAE
 (discount ``gamma ** k``) or, critic-free, from returns standardised within groups
 of rollouts that share an initial state (``group``) or from the episode's return
 itself (``return``; with ``env.reward=sparse`` and ``loss.rwr.weighting=binary``
-the online rows are the successful rollouts: filtered self-imitation). Then:
+the online rows are the successful rollouts: filtered self-imitation). Episodes end
+at the first success; with ``advantage.absorbing_success=true`` (the default) the
+chunk that succeeds also earns the discounted value of staying in success at the
+best per-step reward, ``gamma**j / (1 - gamma)``, so that finishing is worth more than
+lingering near the goal on the dense reward. Then:
 
 * ``algo=rwr``: the decisions join an online buffer; each update mixes
   ``demos.ratio`` demonstration windows with online rows and applies
@@ -54,6 +58,7 @@ from mmada_rl.evaluation import evaluate
 from mmada_rl.training import optimizer_step, resume_training, save_checkpoint, start_run
 from utils import (
     PREFIX,
+    absorb_success,
     action_noise,
     check_config,
     decision_rows,
@@ -205,6 +210,7 @@ def main(cfg: DictConfig) -> None:
                 metrics["train/success_rate"] = float(batch.get(("next", SUCCESS_KEY)).reshape(-1)[ended].float().mean())
                 metrics["train/episodes"] = int(ended.sum())
 
+            absorb_success(cfg, batch)  # after the logged reward: the success's lasting value, for the advantages only
             if gae is not None:
                 with torch.no_grad():
                     gae(batch)

@@ -36,10 +36,11 @@ from mmada_rl.keys import (
     SEQUENCE_KEY,
     STATE_KEY,
     STEP_KEY,
+    SUCCESS_KEY,
     VALUE_TARGET_KEY,
 )
 from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss, RewardWeightedDiffusionLoss
-from mmada_rl.objectives.advantages import group_relative_advantages
+from mmada_rl.objectives.advantages import absorbing_success_reward, group_relative_advantages
 from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
@@ -78,6 +79,9 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) > 0 and split_batch(cfg)[1] == 0:
         raise ValueError("loss.ppo.demo_coef > 0 draws demos.ratio x replay_buffer.batch_size demonstration windows per "
                          "minibatch; with demos.ratio=0 that is none: raise demos.ratio.")
+    if absorbs_success(cfg) and not 0.0 < float(cfg.advantage.gamma) < 1.0:
+        raise ValueError(f"advantage.absorbing_success=true values a success at 1 / (1 - gamma): it needs "
+                         f"advantage.gamma < 1, got {cfg.advantage.gamma!r}.")
     last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
     if last > EVAL_SEED_BASE:
         raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
@@ -193,6 +197,24 @@ def make_gae(cfg: DictConfig, value_operator, model: MMaDAModel) -> GAE:
 def executed_steps(batch: TensorDictBase) -> torch.Tensor:
     """Env steps each decision executed (``k``, fewer when the episode ended inside the chunk), long ``[*B]``."""
     return (batch.get(("next", STEP_KEY)) - batch.get(STEP_KEY)).reshape(batch.shape)
+
+
+def absorbs_success(cfg: DictConfig) -> bool:
+    """``advantage.absorbing_success`` (false when absent)."""
+    return bool(cfg.advantage.get("absorbing_success", False))
+
+
+def absorb_success(cfg: DictConfig, batch: TensorDictBase) -> None:
+    """With ``advantage.absorbing_success``, add to each chunk that ended its episode in success the discounted value of
+    staying there at the best per-step reward (:func:`~mmada_rl.objectives.advantages.absorbing_success_reward`), in
+    place, before any advantage is computed; a no-op otherwise."""
+    if not absorbs_success(cfg):
+        return
+    key = ("next", "reward")
+    reward = batch.get(key)
+    success = batch.get(("next", SUCCESS_KEY)) & batch.get(("next", "terminated"))
+    batch.set(key, absorbing_success_reward(reward, success.reshape(reward.shape), executed_steps(batch),
+                                            float(cfg.advantage.gamma)))
 
 
 def decision_rows(model: MMaDAModel, batch: TensorDictBase) -> TensorDict:
