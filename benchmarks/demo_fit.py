@@ -5,8 +5,11 @@
         --run runs/multitask_bins_s0=PickCube-v1,PushCube-v1,StackCube-v1
 
 For every ``RUN=TASK[,TASK...]`` pair it draws ``--minibatches`` minibatches of
-chunk windows from the task's demonstrations (``--demos``, ``{task}`` filled
-in), masks the target tokens (goal image + action chunk) at each fixed ratio of
+chunk windows from the task's demonstrations (``--demos``: a template with
+``{task}`` filled in, and/or ``TASK=PATH`` for a task's own buffer, e.g.
+``--demos 'data/dart/{task}-fov45' PushCube-v1=data/dart/PushCube-v1-fov60``;
+each buffer must have been recorded with the policy's camera, image size and
+observations for that task), masks the target tokens (goal image + action chunk) at each fixed ratio of
 ``--ratios`` and reports the denoiser's accuracy on the masked action and goal
 tokens. It also decodes each window's chunk greedily with the model's sampler
 (the N steps the policy runs) and reports its mean absolute error against the
@@ -43,6 +46,7 @@ Writes ``benchmarks/results/demo_fit.{json,md,png}``.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
 
@@ -51,11 +55,12 @@ from tqdm.auto import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
-from mmada_rl.data import DemoBuffer  # noqa: E402
+from mmada_rl.data import BufferMismatchError  # noqa: E402
 from mmada_rl.keys import IMAGE_KEY, IMAGE_TOKENS_KEY, STATE_KEY  # noqa: E402
-from mmada_rl.evaluation import load_actor  # noqa: E402
+from mmada_rl.evaluation import eval_env_config, load_actor  # noqa: E402
 from mmada_rl.policy import MMaDAActor, MMaDAModel  # noqa: E402
 from mmada_rl.policy.model import ACTION_READOUTS  # noqa: E402
+from mmada_rl.training.demos import open_demos  # noqa: E402
 from mmada_rl.training.validation import chunk_error, fixed_windows, masked_token_scores  # noqa: E402
 
 
@@ -66,6 +71,22 @@ def parse_run(text: str) -> tuple[Path, list[str]]:
     if not sep or not run or not names:
         raise argparse.ArgumentTypeError(f"expected RUN=TASK[,TASK...], got {text!r}.")
     return Path(run), names
+
+
+def parse_demos(specs: list[str]) -> tuple[str | None, dict[str, Path]]:
+    """``--demos`` entries -> (the template, ``{task}`` filled in per task, or None; {task: its own buffer})."""
+    templates = [spec for spec in specs if "=" not in spec]
+    named = dict(spec.split("=", 1) for spec in specs if "=" in spec)
+    if len(templates) > 1 or not all(named) or not all(named.values()):
+        raise argparse.ArgumentTypeError(f"--demos takes at most one path template (with {{task}}) and TASK=PATH "
+                                         f"entries, got {specs}.")
+    return (templates[0] if templates else None), {task: Path(path) for task, path in named.items()}
+
+
+def demos_path(demos: tuple[str | None, dict[str, Path]], task: str) -> Path | None:
+    """The buffer of ``task``: its own ``TASK=PATH`` entry, else the template filled in (None: neither)."""
+    template, named = demos
+    return named.get(task) or (Path(template.format(task=task)) if template else None)
 
 
 def parse_decode(text: str) -> tuple[str, int]:
@@ -112,7 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--run", type=parse_run, action="append", required=True, metavar="RUN=TASK[,TASK...]",
                         help="a pretraining run (or checkpoint / model directory; a BC or Diffusion Policy run gets the "
                              "decoded error only) and the tasks to score it on; repeatable")
-    parser.add_argument("--demos", default="data/{task}", help="demonstration buffer per task (default: data/{task})")
+    parser.add_argument("--demos", nargs="+", default=["data/{task}"], metavar="TEMPLATE|TASK=PATH",
+                        help="demonstration buffers: a path template with {task}, and/or TASK=PATH for a task's own "
+                             "(default: data/{task}); each must match the policy's camera and image size for its task")
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.5, 0.8, 1.0],
                         help="masking ratios of the target tokens (default: 0.5 0.8 1.0)")
     parser.add_argument("--minibatches", type=int, default=20, help="minibatches per (run, task, ratio) (default: 20)")
@@ -133,10 +156,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--minibatches and --batch-size must be >= 1, --decode-minibatches >= 0.")
     if any(not 0.0 < r <= 1.0 for r in args.ratios):
         parser.error(f"every ratio must be in (0, 1], got {args.ratios}.")
+    try:
+        demos_of = parse_demos(args.demos)
+    except argparse.ArgumentTypeError as err:
+        parser.error(str(err))
     for _, tasks in args.run:
         for task in tasks:
-            if not Path(args.demos.format(task=task)).exists():
-                parser.error(f"no demonstration buffer for {task} at {args.demos.format(task=task)}.")
+            path = demos_path(demos_of, task)
+            if path is None or not path.exists():
+                parser.error(f"no demonstration buffer for {task}" + (f" at {path}." if path else " in --demos."))
 
     results, decoded = [], []
     bar = tqdm(total=sum(len(tasks) for _, tasks in args.run) * (len(args.ratios) + 1), desc="demo fit")
@@ -145,7 +173,10 @@ def main(argv: list[str] | None = None) -> int:
         model = actor.model if isinstance(actor, MMaDAActor) else actor  # a baseline has no tokens to score
         model.eval()
         for task in tasks:
-            demos = DemoBuffer.open(args.demos.format(task=task))  # opened once for every ratio and the decoding
+            try:  # opened once for every ratio and the decoding, checked against the policy's view of the task
+                demos = open_demos(demos_path(demos_of, task), eval_env_config(actor, task))
+            except (BufferMismatchError, ValueError) as err:
+                parser.error(f"{run} on {task}: {err}")
             chunk_size = model.config.chunk_size if isinstance(model, MMaDAModel) else model.chunk_size
             if isinstance(model, MMaDAModel):  # a baseline has no tokens to score
                 batches = fixed_windows(demos, chunk_size, args.minibatches, args.batch_size, args.seed)  # every ratio's
@@ -198,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
                "decode": [f"{readout}:{steps}" for readout, steps in args.decode or []], "swap": args.swap,
                "batch_size": args.batch_size, "seed": args.seed, "results": results, "decoded": decoded}
     command = "python benchmarks/demo_fit.py " + " ".join(f"--run {run}={','.join(tasks)}" for run, tasks in args.run)
+    command += " --demos " + " ".join(shlex.quote(spec) for spec in args.demos)
     command += "".join(f" --decode {readout}:{steps}" for readout, steps in args.decode or [])
     command += "".join(f" --swap {what}" for what in args.swap)
     write_results(args.name, payload,

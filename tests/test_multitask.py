@@ -187,9 +187,12 @@ def test_pretraining_report_gives_one_row_per_task(multitask_run, toy_pretrain_r
     assert (tmp_path / "pretraining.png").exists()
 
 
-def test_demo_fit_report_scores_each_task_on_the_same_windows(multitask_run, pick_demos, tmp_path):
+def test_demo_fit_report_scores_each_task_on_the_same_windows(multitask_run, pick_demos, push_demos, push_demos_fov60,
+                                                             tmp_path, capsys):
+    """Each task's windows come from its own buffer (PushCube-v1's at the 60° camera the model was trained with)."""
     bench = load_script("benchmarks/demo_fit.py", "demo_fit")
-    args = ["--run", f"{multitask_run[0]}=PickCube-v1,PushCube-v1", "--demos", f"{pick_demos.parent}/{{task}}",
+    args = ["--run", f"{multitask_run[0]}=PickCube-v1,PushCube-v1",
+            "--demos", f"{pick_demos.parent}/{{task}}", f"PushCube-v1={push_demos_fov60}",
             "--ratios", "0.5", "1.0", "--minibatches", "2", "--batch-size", "2", "--decode-minibatches", "1"]
     assert bench.main([*args, "--out", str(tmp_path / "a")]) == 0
     assert bench.main([*args, "--out", str(tmp_path / "b")]) == 0
@@ -203,5 +206,14 @@ def test_demo_fit_report_scores_each_task_on_the_same_windows(multitask_run, pic
     assert (tmp_path / "a" / "demo_fit.png").exists() and "PushCube-v1" in (tmp_path / "a" / "demo_fit.md").read_text()
     with pytest.raises(SystemExit):
         bench.main(["--run", f"{multitask_run[0]}", "--out", str(tmp_path)])  # no =TASK
+    assert f"PushCube-v1={push_demos_fov60}" in (tmp_path / "a" / "demo_fit.md").read_text()  # the command, whole
     with pytest.raises(SystemExit):
         bench.main(["--run", f"{multitask_run[0]}=StackCube-v1", "--demos", f"{pick_demos.parent}/{{task}}"])  # no buffer
+    capsys.readouterr()
+    with pytest.raises(SystemExit):  # the template's PushCube-v1 buffer was recorded with the task's own camera
+        bench.main(["--run", f"{multitask_run[0]}=PushCube-v1", "--demos", f"{pick_demos.parent}/{{task}}",
+                    "--out", str(tmp_path / "c")])
+    assert "was recorded with camera_fov=None but 60.0 was asked for" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bench.main(["--run", f"{multitask_run[0]}=PickCube-v1", "--demos", "data/a/{task}", "data/b/{task}"])
+    assert "at most one path template" in capsys.readouterr().err
