@@ -158,6 +158,43 @@ def test_absorbing_success_makes_finishing_worth_more_than_lingering(absorbing):
     assert first["finish"] == pytest.approx(finish, rel=1e-4)
 
 
+def test_the_critic_learns_the_demonstrations_returns(model, pick_demos):
+    """value.pretrain_steps: the targets are each demonstration step's discounted return (the planner's episodes end in
+    success, which then keeps paying 1 / (1 - gamma) when absorbing), and a few steps of regression fit them better."""
+    from mmada_rl.data import DemoBuffer
+    from mmada_rl.keys import IMAGE_KEY, STATE_KEY
+
+    utils, demos = recipe_utils(), DemoBuffer.open(pick_demos)
+    cfg = OmegaConf.load(RECIPE.parent / "config" / "toy.yaml")
+    cfg.value.lr, cfg.value.pretrain_steps = 3e-3, 40
+    bounds, stored = demos.episode_bounds(), demos.storage[: len(demos)]
+    cfg.advantage.absorbing_success = False
+    plain = utils.demo_value_targets(cfg, demos)
+    cfg.advantage.absorbing_success = True
+    absorbing = utils.demo_value_targets(cfg, demos)
+    for start, stop in bounds:
+        rewards = stored[start:stop].get(("next", "reward")).reshape(-1)
+        discount = 0.99 ** torch.arange(stop - start)
+        assert bool(stored[stop - 1].get(("next", "success")).all())  # every planner episode ends in success
+        assert float(plain[start]) == pytest.approx(float((rewards * discount).sum()), rel=1e-4)
+        assert float(absorbing[start] - plain[start]) == pytest.approx(0.99 ** (stop - start) / 0.01, rel=1e-4)
+        assert float(plain[stop - 1]) == pytest.approx(float(rewards[-1]))  # the success step: its reward alone
+
+    torch.manual_seed(0)
+    value_op, value_optim = utils.make_value(cfg, model, demos)
+    batch = stored.select(IMAGE_KEY, STATE_KEY).clone()
+
+    def error() -> float:
+        with torch.no_grad():
+            return float(torch.nn.functional.mse_loss(value_op(batch.clone()).get("state_value").reshape(-1), absorbing))
+
+    before = error()
+    assert utils.pretrain_value(cfg, value_op, value_optim, demos) is not None
+    assert error() < 0.5 * before
+    cfg.value.pretrain_steps = 0
+    assert utils.pretrain_value(cfg, value_op, value_optim, demos) is None  # the default: nothing done
+
+
 def test_absorbing_success_reward_refuses_an_undiscounted_value():
     from mmada_rl.objectives.advantages import absorbing_success_reward
 
@@ -573,7 +610,7 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
                               "eval.episodes=0"], 30),
     ("noisy_gae_signed", ["advantage.estimator=gae", "loss.rwr.weighting=signed", "loss.rwr.standardize_advantage=true",
                           "loss.rwr.normalize_weights=true", "loss.rwr.weight_goal=true", "collector.action_noise=0.1",
-                          "eval.episodes=0"], 30),
+                          "eval.episodes=0", "value.pretrain_steps=3"], 30),
 ])
 def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -585,7 +622,9 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
     # the start-up line describes the updates this algorithm makes (PPO trains on fresh decisions only)
     assert ("epochs over each iteration's decisions" in proc.stdout) == (name == "ppo_group")
     assert ("exploration: greedy chunks + N(0, 0.1^2)" in proc.stdout) == name.startswith("noisy")
-    if name == "noisy_gae_signed":  # a value network was trained and some chunks were pushed down
+    if name == "noisy_gae_signed":  # a value network was trained (first on the demos) and some chunks were pushed down
+        assert "value network fitted to the demonstrations' returns: 3 steps" in proc.stdout
+        assert (tmp_path / name / "logs" / "scalars" / "value" / "pretrain_loss.csv").read_text().strip()
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
         assert any(float(line.split(",")[1]) > 0 for line in (scalars / "negative_fraction.csv").read_text().splitlines())
@@ -626,6 +665,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["collector.action_noise=-0.1"], "collector.action_noise must be >= 0"),
     (["device=cuda"], "the fine-tuning recipe runs on the CPU only"),
     (["advantage.gamma=1.0"], "it needs advantage.gamma < 1"),
+    (["value.pretrain_steps=-1"], "value.pretrain_steps must be >= 0"),
+    (["value.pretrain_steps=5", "advantage.estimator=group"], "uses none: use advantage.estimator=gae"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["absorbing_success_reward", "group_relative_advantages"]
+__all__ = ["absorbing_success_reward", "group_relative_advantages", "returns_to_go"]
 
 
 def group_relative_advantages(returns: torch.Tensor, groups: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
@@ -86,3 +86,34 @@ def absorbing_success_reward(reward: torch.Tensor, success: torch.Tensor, execut
     steps = executed.reshape(*executed.shape, *([1] * (reward.ndim - executed.ndim))).to(reward.dtype)
     bonus = success_reward * gamma ** steps / (1.0 - gamma)
     return reward + success.to(reward.dtype) * bonus
+
+
+def returns_to_go(rewards: torch.Tensor, gamma: float, final_value: float = 0.0) -> torch.Tensor:
+    """Discounted return from every step of one episode: ``G_t = sum_{i >= t} gamma**(i - t) r_i + gamma**(T - t) V_T``.
+
+    Args:
+        rewards: float ``[T]``, the episode's per-step rewards.
+        gamma: per-step discount, ``0 < gamma <= 1``.
+        final_value: ``V_T``, the value of the state after the last step: 0 where the
+            episode terminated, ``1 / (1 - gamma)`` after an absorbing success
+            (:func:`absorbing_success_reward`).
+
+    Returns:
+        float ``[T]``.
+
+    Examples:
+        >>> returns_to_go(torch.tensor([0.0, 1.0, 1.0]), gamma=0.5)
+        tensor([0.7500, 1.5000, 1.0000])
+        >>> returns_to_go(torch.tensor([0.0, 1.0]), gamma=0.5, final_value=2.0)   # success absorbing at reward 1
+        tensor([1., 2.])
+    """
+    if rewards.ndim != 1:
+        raise ValueError(f"rewards must be 1-d (one episode), got shape {tuple(rewards.shape)}.")
+    if not 0.0 < gamma <= 1.0:
+        raise ValueError(f"gamma must lie in (0, 1], got {gamma!r}.")
+    out = torch.empty_like(rewards, dtype=torch.float32)
+    running = float(final_value)
+    for t in range(rewards.shape[0] - 1, -1, -1):
+        running = float(rewards[t]) + gamma * running
+        out[t] = running
+    return out

@@ -36,6 +36,9 @@ read-out, e.g. the mean of the action bins) and executes each chunk with ``N(0, 
 actions (:class:`~mmada_rl.policy.ExecutionNoise`); the online rows hold the executed actions' tokens, so
 with binary weights of episode success the successful noisy rollouts are imitated as demonstrations are.
 
+With ``value.pretrain_steps > 0`` (GAE) the value network is first regressed on the demonstrations'
+discounted returns, so that the first advantages come from a critic that has seen the task.
+
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
 against env steps. Checkpoints (policy, value network, optimizers, counters,
@@ -79,6 +82,7 @@ from utils import (
     make_value,
     mixed_batch,
     open_demo_buffer,
+    pretrain_value,
     split_batch,
 )
 from mmada_rl.keys import IMAGE_KEY, STATE_KEY, SUCCESS_KEY, VALUE_TARGET_KEY
@@ -158,6 +162,12 @@ def main(cfg: DictConfig) -> None:
         if (run_dir / BUFFER_DIR).exists():
             online.loads(run_dir / BUFFER_DIR)
         print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows")
+    elif gae is not None:  # a fresh run: the critic first learns the demonstrations' returns (value.pretrain_steps > 0)
+        value_loss = pretrain_value(cfg, value_op, value_optim, demos)
+        if value_loss is not None:
+            logger.log_scalar("value/pretrain_loss", value_loss, step=0)
+            print(f"{PREFIX} value network fitted to the demonstrations' returns: "
+                  f"{cfg.value.pretrain_steps} steps, loss {value_loss:.3f} over the last tenth")
 
     def checkpoint() -> Path:
         if len(online):

@@ -40,7 +40,7 @@ from mmada_rl.keys import (
     VALUE_TARGET_KEY,
 )
 from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss, RewardWeightedDiffusionLoss
-from mmada_rl.objectives.advantages import absorbing_success_reward, group_relative_advantages
+from mmada_rl.objectives.advantages import absorbing_success_reward, group_relative_advantages, returns_to_go
 from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
@@ -79,6 +79,12 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) > 0 and split_batch(cfg)[1] == 0:
         raise ValueError("loss.ppo.demo_coef > 0 draws demos.ratio x replay_buffer.batch_size demonstration windows per "
                          "minibatch; with demos.ratio=0 that is none: raise demos.ratio.")
+    value_steps = int(cfg.value.get("pretrain_steps") or 0)
+    if value_steps < 0:
+        raise ValueError(f"value.pretrain_steps must be >= 0, got {value_steps}.")
+    if value_steps > 0 and cfg.advantage.estimator != "gae":
+        raise ValueError(f"value.pretrain_steps > 0 fits GAE's critic, but advantage.estimator={cfg.advantage.estimator} "
+                         "uses none: use advantage.estimator=gae or value.pretrain_steps=0.")
     if absorbs_success(cfg) and not 0.0 < float(cfg.advantage.gamma) < 1.0:
         raise ValueError(f"advantage.absorbing_success=true values a success at 1 / (1 - gamma): it needs "
                          f"advantage.gamma < 1, got {cfg.advantage.gamma!r}.")
@@ -185,6 +191,45 @@ def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
     operator = make_value_operator(net).to(cfg.device)
     optimizer = training.make_optimizer(operator.parameters(), lr=float(cfg.value.lr), weight_decay=0.0)
     return operator, optimizer
+
+
+def demo_value_targets(cfg: DictConfig, demos: DemoBuffer) -> torch.Tensor:
+    """The discounted return from every stored demonstration step (``advantage.gamma`` per step), float ``[N]`` in
+    storage order: the value the critic should give the demonstrator's states. An episode that ended in success
+    continues at ``1 / (1 - gamma)`` with ``advantage.absorbing_success`` (as the online chunks do), at 0 otherwise."""
+    gamma, stored = float(cfg.advantage.gamma), demos.storage[: len(demos)]
+    targets = torch.zeros(len(demos))
+    for start, stop in demos.episode_bounds():
+        last = stored[stop - 1]
+        success = bool(last.get(("next", SUCCESS_KEY)).any()) and bool(last.get(("next", "terminated")).any())
+        final = 1.0 / (1.0 - gamma) if success and absorbs_success(cfg) else 0.0
+        targets[start:stop] = returns_to_go(stored[start:stop].get(("next", "reward")).reshape(-1), gamma, final)
+    return targets
+
+
+def pretrain_value(cfg: DictConfig, value_op, value_optim, demos: DemoBuffer) -> float | None:
+    """``value.pretrain_steps`` regression steps of the critic on the demonstrations' returns
+    (:func:`demo_value_targets`, minibatches of ``value.batch_size`` steps drawn with the run's seed), before any
+    online data, so that the first advantages are not the returns of a critic that still says 0. Returns the
+    mean loss of the last tenth of the steps (None: 0 steps, nothing done)."""
+    from tqdm.auto import tqdm
+
+    steps = int(cfg.value.get("pretrain_steps") or 0)
+    if steps == 0:
+        return None
+    targets, stored = demo_value_targets(cfg, demos), demos.storage[: len(demos)]
+    generator = torch.Generator().manual_seed(int(cfg.seed))
+    size, losses = int(cfg.value.batch_size), []
+    for _ in tqdm(range(steps), desc="value on the demonstrations' returns", unit="step"):
+        idx = torch.randint(len(demos), (size,), generator=generator)
+        pred = value_op(stored[idx].select(IMAGE_KEY, STATE_KEY).clone()).get("state_value")
+        loss = torch.nn.functional.mse_loss(pred, targets[idx].reshape(pred.shape))
+        value_optim.zero_grad(set_to_none=True)
+        loss.backward()
+        value_optim.step()
+        losses.append(float(loss.detach()))
+    tail = losses[-max(1, steps // 10):]
+    return sum(tail) / len(tail)
 
 
 def make_gae(cfg: DictConfig, value_operator, model: MMaDAModel) -> GAE:
