@@ -84,8 +84,9 @@ from utils import (
     open_demo_buffer,
     pretrain_value,
     split_batch,
+    value_step,
 )
-from mmada_rl.keys import IMAGE_KEY, STATE_KEY, SUCCESS_KEY, VALUE_TARGET_KEY
+from mmada_rl.keys import SUCCESS_KEY, VALUE_TARGET_KEY
 
 BUFFER_DIR = "online_buffer"
 
@@ -112,12 +113,7 @@ def update_value(cfg, value_op, value_optim, rows) -> float:
     for _ in range(int(cfg.value.epochs)):
         for idx in torch.randperm(n).split(size):
             batch = rows[idx]
-            pred = value_op(batch.select(IMAGE_KEY, STATE_KEY).clone()).get("state_value")
-            loss = torch.nn.functional.mse_loss(pred, batch.get(VALUE_TARGET_KEY).reshape(pred.shape))
-            value_optim.zero_grad(set_to_none=True)
-            loss.backward()
-            value_optim.step()
-            losses.append(float(loss.detach()))
+            losses.append(value_step(value_op, value_optim, batch, batch.get(VALUE_TARGET_KEY)))
     return sum(losses) / max(1, len(losses))
 
 

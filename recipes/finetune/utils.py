@@ -193,6 +193,17 @@ def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
     return operator, optimizer
 
 
+def value_step(value_op, value_optim, observations: TensorDictBase, targets: torch.Tensor) -> float:
+    """One gradient step of the mean squared error of ``V(o)`` (image and state of ``observations``) against
+    ``targets``; returns the loss. Both the online regression and the warm start take it."""
+    pred = value_op(observations.select(IMAGE_KEY, STATE_KEY).clone()).get("state_value")
+    loss = torch.nn.functional.mse_loss(pred, targets.reshape(pred.shape))
+    value_optim.zero_grad(set_to_none=True)
+    loss.backward()
+    value_optim.step()
+    return float(loss.detach())
+
+
 def demo_value_targets(cfg: DictConfig, demos: DemoBuffer) -> torch.Tensor:
     """The discounted return from every stored demonstration step (``advantage.gamma`` per step), float ``[N]`` in
     storage order: the value the critic should give the demonstrator's states. An episode that ended in success
@@ -222,12 +233,7 @@ def pretrain_value(cfg: DictConfig, value_op, value_optim, demos: DemoBuffer) ->
     size, losses = int(cfg.value.batch_size), []
     for _ in tqdm(range(steps), desc="value on the demonstrations' returns", unit="step"):
         idx = torch.randint(len(demos), (size,), generator=generator)
-        pred = value_op(stored[idx].select(IMAGE_KEY, STATE_KEY).clone()).get("state_value")
-        loss = torch.nn.functional.mse_loss(pred, targets[idx].reshape(pred.shape))
-        value_optim.zero_grad(set_to_none=True)
-        loss.backward()
-        value_optim.step()
-        losses.append(float(loss.detach()))
+        losses.append(value_step(value_op, value_optim, stored[idx], targets[idx]))
     tail = losses[-max(1, steps // 10):]
     return sum(tail) / len(tail)
 
