@@ -348,8 +348,8 @@ def evaluate(
         an :class:`EvalResult`; ``result.to_dict()`` is the flat ``eval/...`` metrics dict.
 
     Examples:
-        >>> result = evaluate("runs/pick/checkpoint", "PickCube-v1", episodes=50, execute_steps=5)
-        >>> result.to_dict()["eval/success_once"], result.success_once_ci_low, result.decode_ms_p95
+        >>> result = evaluate("runs/pick/checkpoint", "PickCube-v1", episodes=50, execute_steps=5)  # doctest: +SKIP
+        >>> result.to_dict()["eval/success_once"], result.success_once_ci_low, result.decode_ms_p95  # doctest: +SKIP
     """
     EnvConfig(task=task)  # an unknown task fails before the model loads
     seeds = episode_seeds(episodes, seed_offset, demo_seeds, task)

@@ -193,12 +193,3 @@ def test_layout_serialises(vocab):
     with pytest.raises(ValueError, match="no proprio range"):
         SequenceLayout(LayoutConfig(5, 4, 4, K, D_TOK, proprio_tokens=2),
                        UnifiedVocabulary(VocabularyConfig(50, 16, 12)))
-
-
-@pytest.mark.parametrize("module", ["vocabulary", "layout"])
-def test_docstring_examples_run(module):
-    import doctest
-    import importlib
-
-    result = doctest.testmod(importlib.import_module(f"mmada_rl.tokenizers.{module}"))
-    assert result.failed == 0 and result.attempted > 0

@@ -52,8 +52,12 @@ class BCPolicy(ChunkPolicy):
     Args / keyword args: as :class:`~mmada_rl.baselines.base.ChunkPolicy`.
 
     Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
         >>> policy = BCPolicy(BCConfig(chunk_size=5, action_dim=7, state_dim=29), execute_steps=2)
-        >>> td = policy(env.reset())                      # one ManiSkill env, batch []
+        >>> observation = TensorDict({("observation", "image"): torch.zeros(3, 64, 64, dtype=torch.uint8),
+        ...                           ("observation", "state"): torch.zeros(29)})   # as one env's reset, batch []
+        >>> td = policy(observation)
         >>> td["vla_action", "chunk"].shape, td["action"].shape
         (torch.Size([5, 7]), torch.Size([2, 7]))
     """
@@ -101,8 +105,12 @@ def make_bc_loss(policy: BCPolicy, loss_function: Literal["l1", "mse", "smooth_l
     """TorchRL's ``BCLoss`` scoring chunks at ``("vla_action", "chunk")`` with the ``action_is_pad`` mask.
 
     Examples:
-        >>> loss = make_bc_loss(policy)
-        >>> batch = make_window_buffer(buffer, chunk_size=5, batch_size=32).sample()
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> loss = make_bc_loss(BCPolicy(BCConfig(chunk_size=5, action_dim=7, state_dim=29)))
+        >>> batch = TensorDict({("observation", "image"): torch.zeros(4, 3, 64, 64, dtype=torch.uint8),
+        ...                     ("observation", "state"): torch.zeros(4, 29),
+        ...                     ("vla_action", "chunk"): torch.zeros(4, 5, 7)}, batch_size=[4])  # as a window batch
         >>> loss(batch)["loss_bc"].backward()
     """
     with warnings.catch_warnings():

@@ -79,11 +79,15 @@ class DiffusionPolicy(ChunkPolicy):
     TorchRL's ``DiffusionActor``).
 
     Examples:
-        >>> policy = DiffusionPolicy(DiffusionPolicyConfig(chunk_size=5), stats)
-        >>> td = policy(env.reset())
-        >>> td["vla_action", "chunk"].shape
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> policy = DiffusionPolicy(DiffusionPolicyConfig(chunk_size=5, state_dim=29))  # stats: identity maps
+        >>> observation = TensorDict({("observation", "image"): torch.zeros(3, 64, 64, dtype=torch.uint8),
+        ...                           ("observation", "state"): torch.zeros(29)})   # as one env's reset, batch []
+        >>> policy(observation)["vla_action", "chunk"].shape
         torch.Size([5, 7])
-        >>> fast = policy.get_new_version(num_denoise_steps=4)
+        >>> policy.get_new_version(num_denoise_steps=4).num_denoise_steps
+        4
     """
 
     kind = "diffusion_policy"
@@ -115,8 +119,13 @@ class ChunkDiffusionBCLoss(DiffusionBCLoss):
     entries, padded steps included: see the module docstring).
 
     Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> policy = DiffusionPolicy(DiffusionPolicyConfig(chunk_size=5, state_dim=29))
         >>> loss = ChunkDiffusionBCLoss(policy)
-        >>> batch = make_window_buffer(buffer, chunk_size=5, batch_size=32).sample()
+        >>> batch = TensorDict({("observation", "image"): torch.zeros(4, 3, 64, 64, dtype=torch.uint8),
+        ...                     ("observation", "state"): torch.zeros(4, 29),
+        ...                     ("vla_action", "chunk"): torch.zeros(4, 5, 7)}, batch_size=[4])  # as a window batch
         >>> loss(batch)["loss_diffusion_bc"].backward()
     """
 

@@ -218,8 +218,11 @@ def make_actor(config: RLNetworkConfig, action_spec: TensorSpec, stats: tuple | 
         stats: ``(state_mean, state_std)`` of the training data, or ``None``.
 
     Examples:
-        >>> actor = make_actor(RLNetworkConfig(state_dim=42), env.action_spec)
-        >>> td = actor(env.reset())           # sampled; DETERMINISTIC gives tanh(loc)
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import Bounded
+        >>> actor = make_actor(RLNetworkConfig(state_dim=42), Bounded(-1.0, 1.0, shape=(7,)))  # an env's action_spec
+        >>> td = actor(TensorDict({("observation", "state"): torch.zeros(42)}))  # sampled; DETERMINISTIC: tanh(loc)
         >>> td["action"].shape, td["action_log_prob"].shape
         (torch.Size([7]), torch.Size([]))
     """
@@ -257,7 +260,7 @@ class OneStepChunkActor(TensorDictModuleBase):
         camera_fov: the camera's field of view in degrees (``rgb``; ``None``: the task's own).
 
     Examples:
-        >>> result = evaluate(OneStepChunkActor(actor, "state"), "PickCube-v1", episodes=20)
+        >>> result = evaluate(OneStepChunkActor(actor, "state"), "PickCube-v1", episodes=20)  # doctest: +SKIP
     """
 
     chunk_size = 1
@@ -363,8 +366,8 @@ def load_rl_actor(directory: str | Path, *, device: str | torch.device = "cpu") 
     that :func:`mmada_rl.evaluation.evaluate` runs (greedy under its deterministic exploration type).
 
     Examples:
-        >>> actor = load_rl_actor("runs/online_sac_PickCube-v1_s0/checkpoints/step_00050000/model")
-        >>> actor.obs_mode, actor.chunk_size
+        >>> actor = load_rl_actor("runs/online_sac_PickCube-v1_s0/checkpoints/step_00050000/model")  # doctest: +SKIP
+        >>> actor.obs_mode, actor.chunk_size  # doctest: +SKIP
         ('state', 1)
     """
     payload = _agent_payload(directory)

@@ -45,9 +45,17 @@ class RandomShift(Transform):
             one offset per window, shared by all of them.
 
     Examples:
-        >>> rb = make_window_buffer(buffer, chunk_size=5, batch_size=32)
-        >>> rb.append_transform(RandomShift(4))                                # the observation only
-        >>> rb.append_transform(RandomShift(4, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))  # and its goal frame
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmada_rl.keys import GOAL_IMAGE_KEY
+        >>> image = torch.randint(0, 256, (8, 3, 64, 64), dtype=torch.uint8)
+        >>> windows = TensorDict({IMAGE_KEY: image, GOAL_IMAGE_KEY: image.clone()}, batch_size=[8])
+        >>> shift = RandomShift(4, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY])  # the observation and its goal frame
+        >>> out = shift(windows)          # in training: make_window_buffer(...).append_transform(shift)
+        >>> out[IMAGE_KEY].shape, out[IMAGE_KEY].dtype
+        (torch.Size([8, 3, 64, 64]), torch.uint8)
+        >>> torch.equal(out[IMAGE_KEY], out[GOAL_IMAGE_KEY])  # one offset per window, shared by both
+        True
     """
 
     def __init__(self, pad: int = 4, image_keys: Sequence = (IMAGE_KEY,)) -> None:

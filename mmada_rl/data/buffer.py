@@ -85,11 +85,11 @@ class DemoBuffer:
     (with the values the caller expects, which are checked), and
     :meth:`open_or_create` to resume a collection.
 
-    Examples:
-        >>> buf = DemoBuffer.open("data/pickcube", task="PickCube-v1", control_mode="pd_ee_delta_pose")
-        >>> len(buf), buf.metadata.num_episodes
+    Examples (a buffer written by ``mmada-rl collect``; a sample is flat transitions, instruction text included):
+        >>> buf = DemoBuffer.open("data/pickcube", task="PickCube-v1", control_mode="pd_ee_delta_pose")  # doctest: +SKIP
+        >>> len(buf), buf.metadata.num_episodes  # doctest: +SKIP
         (7921, 100)
-        >>> batch = buf.replay_buffer.sample(32)  # flat transitions, instruction text included
+        >>> batch = buf.replay_buffer.sample(32)  # doctest: +SKIP
     """
 
     def __init__(self, path: Path, replay_buffer: TensorDictReplayBuffer, metadata: BufferMetadata):

@@ -274,9 +274,9 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             this (:func:`grasp_holds`); 0: off.
 
     Examples:
-        >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)
-        >>> batch = rb.sample()
-        >>> batch["vla_action", "chunk"].shape, batch["goal", "image"].shape
+        >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)  # doctest: +SKIP
+        >>> batch = rb.sample()  # doctest: +SKIP
+        >>> batch["vla_action", "chunk"].shape, batch["goal", "image"].shape  # doctest: +SKIP
         (torch.Size([32, 5, 7]), torch.Size([32, 3, 64, 64]))
     """
     from mmada_rl.data.buffer import InstructionLookup
@@ -388,9 +388,9 @@ class MultiTaskWindows:
         skip_idle_start, skip_pauses, skip_grasp_hold: as for :func:`make_window_buffer`, in every buffer.
 
     Examples:
-        >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)
-        >>> batch = windows.sample()
-        >>> batch["language_instruction"][:2], batch["task_index"][:2]
+        >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)  # doctest: +SKIP
+        >>> batch = windows.sample()  # doctest: +SKIP
+        >>> batch["language_instruction"][:2], batch["task_index"][:2]  # doctest: +SKIP
     """
 
     def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None,

@@ -103,17 +103,17 @@ class MMaDAActor(ChunkExecutionMixin, VLAWrapperBase):
     Attributes:
         last_decode_seconds: wall time of the last ``model.act`` call.
 
-    Examples:
+    Examples (``model``: an :class:`MMaDAModel` with ``chunk_size=5``; ``env``: one ManiSkill env, batch ``[]``):
         >>> import torch
         >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
-        >>> actor = MMaDAActor(model, execute_steps=2)          # model: an MMaDAModel, chunk_size=5
-        >>> td = env.reset()                                   # one ManiSkill env, batch []
-        >>> td = actor(td)
-        >>> td["vla_action", "chunk"].shape, td["action"].shape
+        >>> actor = MMaDAActor(model, execute_steps=2)  # doctest: +SKIP
+        >>> td = env.reset()  # doctest: +SKIP
+        >>> td = actor(td)  # doctest: +SKIP
+        >>> td["vla_action", "chunk"].shape, td["action"].shape  # doctest: +SKIP
         (torch.Size([5, 7]), torch.Size([2, 7]))
-        >>> td["vla_action", "log_probs"].shape
+        >>> td["vla_action", "log_probs"].shape  # doctest: +SKIP
         torch.Size([])
-        >>> with set_exploration_type(ExplorationType.RANDOM):
+        >>> with set_exploration_type(ExplorationType.RANDOM):  # doctest: +SKIP
         ...     sampled = actor(env.reset(), generator=torch.Generator().manual_seed(0))
     """
 

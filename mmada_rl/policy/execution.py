@@ -56,10 +56,10 @@ class TemporalEnsemble(TensorDictModuleBase):
         actor: an :class:`~mmada_rl.policy.actor.MMaDAActor` (any ``execute_steps``).
         decay: ``m`` in ``exp(-m * i)``; ACT uses 0.01.
 
-    Examples:
-        >>> policy = TemporalEnsemble(MMaDAActor(model), decay=0.01)
-        >>> td = policy(env.reset())                 # env with an InitTracker
-        >>> td["action"].shape
+    Examples (``model``: an :class:`MMaDAModel`; ``env``: one ManiSkill env with an ``InitTracker``):
+        >>> policy = TemporalEnsemble(MMaDAActor(model), decay=0.01)  # doctest: +SKIP
+        >>> td = policy(env.reset())  # doctest: +SKIP
+        >>> td["action"].shape  # doctest: +SKIP
         torch.Size([1, 7])
     """
 
@@ -121,10 +121,11 @@ class ExecutionNoise(TensorDictModuleBase):
         std: noise standard deviation in the env's normalised action units (> 0).
         generator: RNG of the noise (``None``: torch's global RNG).
 
-    Examples:
-        >>> policy = ExecutionNoise(MMaDAActor(model), std=0.1, generator=torch.Generator().manual_seed(0))
-        >>> with set_exploration_type(ExplorationType.DETERMINISTIC):
-        ...     td = policy(env.reset())        # the greedy chunk, perturbed; tokens match td["action"]
+    Examples (the greedy chunk, perturbed; its tokens match ``td["action"]``):
+        >>> noise = torch.Generator().manual_seed(0)
+        >>> policy = ExecutionNoise(MMaDAActor(model), std=0.1, generator=noise)  # doctest: +SKIP
+        >>> with set_exploration_type(ExplorationType.DETERMINISTIC):  # doctest: +SKIP
+        ...     td = policy(env.reset())
     """
 
     def __init__(self, actor: MMaDAActor, std: float, generator: torch.Generator | None = None) -> None:
@@ -170,7 +171,7 @@ class ChunkReward(MultiAction):
         step_count_key: the step counter's key.
 
     Examples:
-        >>> env = TransformedEnv(make_env("PushCube-v1"), ChunkReward(gamma=0.99))
+        >>> env = TransformedEnv(make_env("PushCube-v1"), ChunkReward(gamma=0.99), auto_unwrap=False)
         >>> td = env.reset().set("action", torch.zeros(5, 7))   # a 5-step chunk
         >>> env.step(td)["next", "reward"].shape                 # one reward per chunk
         torch.Size([1])
@@ -292,10 +293,10 @@ def make_policy_env(
 
     ``("next", "step_count")`` counts inner steps.
 
-    Examples:
-        >>> penv = make_policy_env(EnvConfig("PickCube-v1"), MMaDAActor(model), execute_steps=2)
-        >>> rollout = penv.env.rollout(10, penv.policy)        # 10 decisions, 20 env steps
-        >>> rollout["next", "step_count"][-1]
+    Examples (``model``: an :class:`MMaDAModel`; 10 decisions of 2 executed steps make 20 env steps):
+        >>> penv = make_policy_env(EnvConfig("PickCube-v1"), MMaDAActor(model), execute_steps=2)  # doctest: +SKIP
+        >>> rollout = penv.env.rollout(10, penv.policy)  # doctest: +SKIP
+        >>> rollout["next", "step_count"][-1]  # doctest: +SKIP
         tensor([20])
     """
     chunk_size = actor.chunk_size

@@ -185,10 +185,11 @@ class MMaDAModel(nn.Module):
         tokenizers: fitted tokenizers (kept frozen).
         state_dim: size of the proprioceptive state (needed when ``use_proprio``).
 
-    Examples:
-        >>> model = MMaDAModel(MMaDAConfig(chunk_size=5, denoiser="tiny"), tokenizers)
-        >>> ids = model.sequence(batch)            # (B, L) clean training sequence
-        >>> out = model.act(observation_td)        # PolicyOutput(chunk=(B, 5, 7), ...)
+    Examples (``tokenizers`` fitted on demonstrations; ``sequence`` is the clean ``(B, L)`` training sequence,
+    ``act`` returns a :class:`PolicyOutput` with ``chunk`` of shape ``(B, 5, 7)``):
+        >>> model = MMaDAModel(MMaDAConfig(chunk_size=5, denoiser="tiny"), tokenizers)  # doctest: +SKIP
+        >>> ids = model.sequence(batch)  # doctest: +SKIP
+        >>> out = model.act(observation_td)  # doctest: +SKIP
     """
 
     def __init__(self, config: MMaDAConfig, tokenizers: Tokenizers):

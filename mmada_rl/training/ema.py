@@ -11,14 +11,21 @@ average starts as a copy. Floating-point parameters and buffers are averaged;
 integer buffers (counters) are copied.
 
 Examples:
+    >>> import torch
+    >>> policy = torch.nn.Linear(2, 1)
+    >>> optimizer = torch.optim.SGD(policy.parameters(), lr=0.1)
     >>> ema = WeightEMA(policy)
-    >>> for batch in batches:
-    ...     loss(batch).backward(); optimizer.step()
+    >>> for _ in range(3):
+    ...     optimizer.zero_grad(); policy(torch.ones(1, 2)).sum().backward(); optimizer.step()
     ...     ema.update()
-    >>> with ema.applied():          # the policy holds the averaged weights here
-    ...     evaluate(policy, "PushCube-v1", episodes=20)
-    >>> with ema.checkpointed() as extra:   # saved: the average as the model, the own weights in ``extra``
-    ...     save_checkpoint(run_dir, step, model=policy, ..., extra=extra)
+    >>> ema.updates, round(ema.decay(), 4)
+    (3, 0.5613)
+    >>> with ema.applied():           # the policy holds the averaged weights here (evaluate it inside)
+    ...     torch.equal(policy.bias.data, ema.shadow["bias"])
+    True
+    >>> with ema.checkpointed() as extra:   # what a checkpoint saves: the average as the model, the own weights
+    ...     sorted(extra)                   # and the update count in ``extra``
+    ['ema_updates', 'train_weights']
 """
 from __future__ import annotations
 
