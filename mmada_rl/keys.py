@@ -29,6 +29,7 @@ __all__ = [
     "OBSERVATION_KEY",
     "STATE_KEY",
     "VLA_ACTION_KEY",
+    "PRIVILEGED_STATE_KEY",
     "GOAL_IMAGE_KEY",
     "GOAL_IS_CLIPPED_KEY",
     "EPISODE_KEY",
@@ -49,6 +50,9 @@ __all__ = [
     "GROUP_KEY",
 ]
 
+#: ManiSkill's simulator state (every actor's pose and velocities, the robot's joints), float32 ``[*B, D]``:
+#: what a critic may read in training and a policy never does (``EnvConfig.privileged_state``).
+PRIVILEGED_STATE_KEY = ("observation", "privileged_state")
 #: Future observation ``o_{t+K}`` that the policy predicts with the chunk, uint8 ``[*B, 3, H, W]``.
 GOAL_IMAGE_KEY = ("goal", "image")
 #: True where ``t+K`` ran past the episode's last frame and the goal was clipped to it.

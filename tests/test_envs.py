@@ -8,7 +8,7 @@ from torchrl.envs.utils import check_env_specs
 from mmada_rl.envs.maniskill import EnvConfig, make_env, make_gym_env
 from mmada_rl.envs.tasks import SUPPORTED_TASKS, UnknownTaskError, task_spec
 from mmada_rl.envs.vulkan import VulkanUnavailableError
-from mmada_rl.keys import IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+from mmada_rl.keys import IMAGE_KEY, INSTRUCTION_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 
 
 @pytest.fixture(scope="module")
@@ -100,11 +100,39 @@ def test_unknown_task_lists_supported_ones():
 @pytest.mark.parametrize(
     "field, value, match",
     [("obs_mode", "depth", "obs_mode"), ("reward", "shaped", "reward"), ("image_size", 7, "image_size"), ("num_workers", 0, "num_workers"),
-     ("camera_fov", 0, "camera_fov"), ("camera_fov", 180, "camera_fov")],
+     ("camera_fov", 0, "camera_fov"), ("camera_fov", 180, "camera_fov"), ("privileged_state", True, "obs_mode='rgb'")],
 )
 def test_bad_env_config_values_raise_one_clear_error(field, value, match):
+    overrides = {"obs_mode": "state"} if field == "privileged_state" else {}  # the state is privileged already
     with pytest.raises(ValueError, match=match):
-        EnvConfig(**{field: value})
+        EnvConfig(**{field: value, **overrides})
+
+
+def test_privileged_state_holds_the_simulator_state_beside_the_policy_observation():
+    """``privileged_state=True`` adds ManiSkill's ``get_state()``: the cube's and the goal's positions in it are the
+    ones ManiSkill's own state observation reports for the same seed, and the policy's entries do not change."""
+    from mmada_rl.envs import privileged_state_dim
+
+    env = make_env(EnvConfig(task="PickCube-v1", privileged_state=True))
+    plain = make_env(EnvConfig(task="PickCube-v1"))
+    state = make_env(EnvConfig(task="PickCube-v1", obs_mode="state"))
+    try:
+        check_env_specs(env)
+        td, td_plain, td_state = env.reset(seed=3), plain.reset(seed=3), state.reset(seed=3)
+        assert td[PRIVILEGED_STATE_KEY].shape == (privileged_state_dim("PickCube-v1"),) == (70,)
+        assert PRIVILEGED_STATE_KEY not in td_plain.keys(True)  # off by default: buffers keep their layout
+        assert torch.equal(td[STATE_KEY], td_plain[STATE_KEY]) and torch.equal(td[IMAGE_KEY], td_plain[IMAGE_KEY])
+        # get_state(): table, cube, goal (13 each: position, quaternion, velocities), then the robot;
+        # ManiSkill's state observation: qpos, qvel, is_grasped, tcp pose, goal position, cube pose, ...
+        privileged, observed = td[PRIVILEGED_STATE_KEY], td_state[STATE_KEY]
+        torch.testing.assert_close(privileged[13:16], observed[29:32])  # the cube's position
+        torch.testing.assert_close(privileged[26:29], observed[26:29])  # the goal's
+        rollout = env.rollout(3)
+        assert rollout["next", *PRIVILEGED_STATE_KEY].shape == (3, 70)
+        assert not torch.equal(rollout["next", *PRIVILEGED_STATE_KEY][-1], privileged)  # the arm moved
+    finally:
+        for e in (env, plain, state):
+            e.close()
 
 
 def test_missing_vulkan_device_gets_the_doctor_message(monkeypatch):

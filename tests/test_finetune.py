@@ -23,6 +23,7 @@ from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import group_relative_advantages
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_policy_env
+from mmada_rl.training.checkpoint import load_checkpoint
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from script_loader import load_script
 
@@ -611,6 +612,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     ("noisy_gae_signed", ["advantage.estimator=gae", "loss.rwr.weighting=signed", "loss.rwr.standardize_advantage=true",
                           "loss.rwr.normalize_weights=true", "loss.rwr.weight_goal=true", "collector.action_noise=0.1",
                           "eval.episodes=0", "value.pretrain_steps=3"], 30),
+    ("noisy_privileged_critic", ["advantage.estimator=gae", "value.input=privileged_state", "loss.rwr.weighting=signed",
+                           "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0"], 30),
 ])
 def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -628,6 +631,12 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
         assert any(float(line.split(",")[1]) > 0 for line in (scalars / "negative_fraction.csv").read_text().splitlines())
+    if name == "noisy_privileged_critic":  # GAE's critic read the simulator's state, the policy its pixels
+        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        assert (scalars / "value_loss.csv").read_text().strip()
+        value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]
+        first = next(v for k, v in value.items() if k.endswith("mlp.0.weight"))
+        assert first.shape[-1] == 70  # PickCube-v1's privileged state
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
         history = json.loads((tmp_path / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
@@ -667,6 +676,9 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["advantage.gamma=1.0"], "it needs advantage.gamma < 1"),
     (["value.pretrain_steps=-1"], "value.pretrain_steps must be >= 0"),
     (["value.pretrain_steps=5", "advantage.estimator=group"], "uses none: use advantage.estimator=gae"),
+    (["value.input=pixels"], "use observation or privileged_state"),
+    (["value.input=privileged_state", "advantage.estimator=return"], "uses no critic"),
+    (["value.input=privileged_state", "value.pretrain_steps=5"], "hold no privileged state"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
@@ -684,6 +696,8 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "advantage.absorbing_success=false" in fresh
     assert "advantage.absorbing_success=true" in compare.command("mmada_gae_noise_absorbing", "PickCube-v1", 0, 1000, out,
                                                                  "x", 5, 500)
+    assert "value.input=privileged_state" in compare.command("mmada_gae_noise_privileged", "PickCube-v1", 0, 1000, out,
+                                                             "x", 5, 500)
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")

@@ -25,7 +25,7 @@ from torchrl.envs.gym_like import default_info_dict_reader
 
 from mmada_rl.envs.instruction import InstructionTransform
 from mmada_rl.envs.tasks import task_option, task_spec
-from mmada_rl.keys import GROUP_KEY, IMAGE_KEY, STATE_KEY
+from mmada_rl.keys import GROUP_KEY, IMAGE_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 from mmada_rl.envs.vulkan import VulkanUnavailableError, is_render_device_error
 
 ObsMode = Literal["rgb", "state"]
@@ -74,6 +74,12 @@ class EnvConfig:
             e.g. PickCube-v1's ``is_grasped`` and ``is_obj_placed``) into every
             step, beside ``success`` (evaluation does; off by default, so
             demonstration buffers keep their layout).
+        privileged_state: with ``obs_mode="rgb"``, also give the simulator's
+            state as ``("observation", "privileged_state")``: ManiSkill's
+            ``get_state()``, every actor's pose and velocities and the robot's
+            joints (70 numbers on PickCube-v1, the cube's pose among them), for
+            a critic trained beside a pixel policy (asymmetric actor-critic,
+            Pinto et al., 2018). Off by default: policies never read it.
     """
 
     task: str = "PickCube-v1"
@@ -88,10 +94,14 @@ class EnvConfig:
     train_seed: int | None = None
     group_size: int = 1
     stage_flags: bool = False
+    privileged_state: bool = False
 
     def __post_init__(self) -> None:
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}.")
+        if self.privileged_state and self.obs_mode != "rgb":
+            raise ValueError(f"privileged_state=True adds the simulator state beside the image; obs_mode={self.obs_mode!r} "
+                             "already is ManiSkill's privileged state: use obs_mode='rgb' or privileged_state=False.")
         if self.reward not in _REWARD_MODES:
             raise ValueError(f"reward must be 'dense' or 'sparse', got {self.reward!r}.")
         if not isinstance(self.image_size, int) or not 16 <= self.image_size <= 512:
@@ -131,7 +141,8 @@ def task_camera_fov(camera_fov: float | Mapping[str, float | None] | None, task:
 
 
 class CanonicalObservation(gym.Wrapper):
-    """Unbatched ManiSkill observations → ``{"camera": CHW uint8, "proprio": float32}``.
+    """Unbatched ManiSkill observations → ``{"camera": CHW uint8, "proprio": float32}``
+    (and ``"privileged"``: the simulator state, float32, with ``privileged=True``).
 
     (:func:`make_env` then renames them to the canonical ``("observation", "image")``
     and ``("observation", "state")``; TorchRL's ``GymWrapper`` would rename a
@@ -147,23 +158,32 @@ class CanonicalObservation(gym.Wrapper):
     those are dropped, so every task gives the policy one third-person view.
     """
 
-    def __init__(self, env: gym.Env, obs_mode: ObsMode, flags: tuple[str, ...] = ()):
+    def __init__(self, env: gym.Env, obs_mode: ObsMode, flags: tuple[str, ...] = (), privileged: bool = False):
         super().__init__(env)
-        self.obs_mode, self.flags = obs_mode, ("success", *flags)
+        self.obs_mode, self.flags, self.privileged = obs_mode, ("success", *flags), bool(privileged)
         space = env.observation_space
         if obs_mode == "rgb":
             h, w, _ = space["rgb"].shape
-            self.observation_space = gym.spaces.Dict(
+            spaces = dict(
                 camera=gym.spaces.Box(0, 255, (3, h, w), np.uint8),
                 proprio=gym.spaces.Box(-np.inf, np.inf, space["state"].shape, np.float32),
             )
+            if self.privileged:
+                spaces["privileged"] = gym.spaces.Box(-np.inf, np.inf, self._sim_state().shape, np.float32)
+            self.observation_space = gym.spaces.Dict(**spaces)
         else:
             self.observation_space = gym.spaces.Dict(proprio=gym.spaces.Box(-np.inf, np.inf, space.shape, np.float32))
+
+    def _sim_state(self) -> np.ndarray:
+        return self.env.unwrapped.get_state().reshape(-1).cpu().numpy().astype(np.float32)
 
     def _obs(self, obs):
         if self.obs_mode == "rgb":
             image = np.ascontiguousarray(np.moveaxis(obs["rgb"][..., :3], -1, 0))  # the first camera only
-            return {"camera": image, "proprio": obs["state"].astype(np.float32)}
+            out = {"camera": image, "proprio": obs["state"].astype(np.float32)}
+            if self.privileged:
+                out["privileged"] = self._sim_state()
+            return out
         return {"proprio": np.asarray(obs, dtype=np.float32)}
 
     def _info(self, info: dict) -> dict:
@@ -285,7 +305,19 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
     if cfg.obs_mode == "rgb":
         env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
     env = CPUGymWrapper(env, ignore_terminations=cfg.ignore_terminations)
-    return CanonicalObservation(env, cfg.obs_mode, task_spec(cfg.task).stages if cfg.stage_flags else ())
+    return CanonicalObservation(env, cfg.obs_mode, task_spec(cfg.task).stages if cfg.stage_flags else (),
+                                privileged=cfg.privileged_state)
+
+
+def privileged_state_dim(task: str) -> int:
+    """Size of ``task``'s privileged state (:attr:`EnvConfig.privileged_state`), read from a state-only env
+    (nothing rendered): every actor's 13 pose and velocity entries, each articulation's root 13 and its joints'
+    positions and velocities."""
+    env = make_gym_env(EnvConfig(task=task, obs_mode="state"))
+    try:
+        return int(env.unwrapped.get_state().reshape(-1).shape[0])
+    finally:
+        env.close()
 
 
 def _make_single_env(cfg: EnvConfig, worker: int = 0, extra_transform: Callable[[], Transform] | None = None) -> TransformedEnv:
@@ -304,6 +336,8 @@ def _make_single_env(cfg: EnvConfig, worker: int = 0, extra_transform: Callable[
     keys = {"camera": IMAGE_KEY, "proprio": STATE_KEY}
     if cfg.obs_mode != "rgb":
         keys.pop("camera")
+    if cfg.privileged_state:
+        keys["privileged"] = PRIVILEGED_STATE_KEY
     nest = RenameTransform(in_keys=list(keys), out_keys=list(keys.values()))
     transforms = [nest, InstructionTransform(task_spec(cfg.task).instruction), StepCounter()]
     if extra_transform is not None:

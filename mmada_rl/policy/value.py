@@ -1,9 +1,10 @@
-"""Chunk-level value function of the fine-tuning recipes: ``V(o_t)`` from the image and the proprio state.
+"""Chunk-level value function of the fine-tuning recipes: ``V(o_t)`` from the image and the proprio state,
+or, as an asymmetric critic, from the simulator's privileged state.
 
 A separate small network (the baselines' :class:`~mmada_rl.baselines.encoders.ObservationEncoder`
-and an MLP head), so that fitting values never moves the policy's denoiser.
-Wrapped as TorchRL's :class:`~torchrl.modules.ValueOperator`, it plugs into
-:class:`~torchrl.objectives.value.GAE`.
+and an MLP head, or an MLP over ``("observation", "privileged_state")``), so that fitting values
+never moves the policy's denoiser. Wrapped as TorchRL's :class:`~torchrl.modules.ValueOperator`
+reading the network's ``in_keys``, it plugs into :class:`~torchrl.objectives.value.GAE`.
 """
 from __future__ import annotations
 
@@ -12,9 +13,9 @@ from torch import nn
 from torchrl.modules import ValueOperator
 
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
-from mmada_rl.keys import IMAGE_KEY, STATE_KEY
+from mmada_rl.keys import IMAGE_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 
-__all__ = ["ValueNetwork", "make_value_operator"]
+__all__ = ["PrivilegedValueNetwork", "ValueNetwork", "make_value_operator"]
 
 
 class ValueNetwork(nn.Module):
@@ -27,6 +28,8 @@ class ValueNetwork(nn.Module):
         hidden: width of the MLP head.
         state_mean, state_std: state moments (e.g. of the demonstrations).
     """
+
+    in_keys = [IMAGE_KEY, STATE_KEY]
 
     def __init__(self, encoder: EncoderConfig, *, image_size: int, state_dim: int, hidden: int = 256,
                  state_mean: torch.Tensor | None = None, state_std: torch.Tensor | None = None) -> None:
@@ -41,6 +44,36 @@ class ValueNetwork(nn.Module):
         return out.reshape(*batch, 1)
 
 
-def make_value_operator(network: ValueNetwork) -> ValueOperator:
-    """The network as a TorchRL ``ValueOperator`` reading the canonical observation keys, writing ``"state_value"``."""
-    return ValueOperator(network, in_keys=[IMAGE_KEY, STATE_KEY])
+class PrivilegedValueNetwork(nn.Module):
+    """``V(privileged_state) -> [B, 1]``: an MLP with LayerNorm (the simulator state mixes metres, quaternions,
+    joint angles and velocities, unnormalised).
+
+    Args:
+        state_dim: size of the privileged state (:attr:`mmada_rl.envs.EnvConfig.privileged_state`).
+        hidden: width of the two hidden layers.
+
+    Examples:
+        >>> import torch
+        >>> net = PrivilegedValueNetwork(70, hidden=32)
+        >>> net(torch.zeros(4, 70)).shape
+        torch.Size([4, 1])
+        >>> make_value_operator(net).in_keys
+        [('observation', 'privileged_state')]
+    """
+
+    in_keys = [PRIVILEGED_STATE_KEY]
+
+    def __init__(self, state_dim: int, hidden: int = 256) -> None:
+        super().__init__()
+        if state_dim < 1 or hidden < 1:
+            raise ValueError(f"state_dim and hidden must be positive, got {state_dim!r} and {hidden!r}.")
+        self.mlp = nn.Sequential(nn.Linear(state_dim, hidden), nn.LayerNorm(hidden), nn.Mish(),
+                                 nn.Linear(hidden, hidden), nn.LayerNorm(hidden), nn.Mish(), nn.Linear(hidden, 1))
+
+    def forward(self, privileged_state: torch.Tensor) -> torch.Tensor:
+        return self.mlp(privileged_state)
+
+
+def make_value_operator(network: ValueNetwork | PrivilegedValueNetwork) -> ValueOperator:
+    """The network as a TorchRL ``ValueOperator`` reading its ``in_keys``, writing ``"state_value"``."""
+    return ValueOperator(network, in_keys=list(network.in_keys))

@@ -21,7 +21,7 @@ from mmada_rl.baselines.encoders import EncoderConfig
 from mmada_rl.data import WINDOW_SKIPS, DemoBuffer, make_window_buffer, window_skips
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
-from mmada_rl.envs.maniskill import EnvConfig, make_env
+from mmada_rl.envs.maniskill import EnvConfig, make_env, privileged_state_dim
 from mmada_rl.evaluation import EVAL_SEED_BASE, resolve_model_dir
 from mmada_rl.envs.maniskill import WORKER_SEED_STRIDE
 from mmada_rl.keys import (
@@ -33,6 +33,7 @@ from mmada_rl.keys import (
     IMAGE_KEY,
     INSTRUCTION_KEY,
     IS_DEMO_KEY,
+    PRIVILEGED_STATE_KEY,
     SEQUENCE_KEY,
     STATE_KEY,
     STEP_KEY,
@@ -44,15 +45,15 @@ from mmada_rl.objectives.advantages import absorbing_success_reward, group_relat
 from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
-from mmada_rl.policy.value import ValueNetwork, make_value_operator
+from mmada_rl.policy.value import PrivilegedValueNetwork, ValueNetwork, make_value_operator
 from mmada_rl.training.checkpoint import CONFIG_FILE
 from mmada_rl.training.demos import open_demos
 
 PREFIX = "[finetune]"
 ALGOS = ("rwr", "ppo")
 ESTIMATORS = ("gae", "group", "return")
-#: what every training row of the online buffer holds
-ROW_KEYS = [SEQUENCE_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, VALUE_TARGET_KEY, IMAGE_KEY, STATE_KEY, DECODING_PATH_KEY]
+#: what GAE's critic reads: the policy's observation (image and proprio state) or the simulator's privileged state
+VALUE_INPUTS = ("observation", "privileged_state")
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -85,6 +86,15 @@ def check_config(cfg: DictConfig) -> None:
     if value_steps > 0 and cfg.advantage.estimator != "gae":
         raise ValueError(f"value.pretrain_steps > 0 fits GAE's critic, but advantage.estimator={cfg.advantage.estimator} "
                          "uses none: use advantage.estimator=gae or value.pretrain_steps=0.")
+    value_input = cfg.value.get("input", "observation")
+    if value_input not in VALUE_INPUTS:
+        raise ValueError(f"value.input={value_input!r}; use observation or privileged_state.")
+    if value_input == "privileged_state" and cfg.advantage.estimator != "gae":
+        raise ValueError(f"value.input=privileged_state chooses what GAE's critic reads, but advantage.estimator="
+                         f"{cfg.advantage.estimator} uses no critic: use advantage.estimator=gae or value.input=observation.")
+    if value_input == "privileged_state" and value_steps > 0:
+        raise ValueError("value.pretrain_steps > 0 fits the critic on the demonstrations, which hold no privileged state: "
+                         "use value.pretrain_steps=0 or value.input=observation.")
     if absorbs_success(cfg) and not 0.0 < float(cfg.advantage.gamma) < 1.0:
         raise ValueError(f"advantage.absorbing_success=true values a success at 1 / (1 - gamma): it needs "
                          f"advantage.gamma < 1, got {cfg.advantage.gamma!r}.")
@@ -127,6 +137,7 @@ def make_env_config(cfg: DictConfig, model: MMaDAModel) -> EnvConfig:
         reward=e.reward,
         max_episode_steps=e.max_episode_steps, num_workers=int(e.num_workers), train_seed=int(e.train_seed),
         group_size=int(cfg.advantage.group_size) if cfg.advantage.estimator == "group" else 1,
+        privileged_state=privileged_critic(cfg),
     )
 
 
@@ -183,20 +194,31 @@ def make_collector(cfg: DictConfig, penv: PolicyEnv) -> Collector:
 
 
 # -- value and advantages -------------------------------------------------------------
+def privileged_critic(cfg: DictConfig) -> bool:
+    """Whether GAE's critic reads the simulator's privileged state (``value.input=privileged_state``); the training
+    env then also gives it, and the policy still reads only its own observation."""
+    return cfg.value.get("input", "observation") == "privileged_state"
+
+
 def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
-    """Chunk-level value network (encoder + MLP) as a ``ValueOperator``, with its optimizer."""
-    stats = NormalizationStats.from_buffer(demos)
-    net = ValueNetwork(EncoderConfig(**cfg.value.encoder), image_size=model.image_size, state_dim=demos.metadata.state_dim,
-                       hidden=int(cfg.value.hidden), state_mean=stats.state_mean, state_std=stats.state_std)
+    """Chunk-level value network as a ``ValueOperator``, with its optimizer: an encoder of the image and the proprio
+    state and an MLP head, or (``value.input=privileged_state``) an MLP over the simulator's state."""
+    if privileged_critic(cfg):
+        net = PrivilegedValueNetwork(privileged_state_dim(cfg.env.task), hidden=int(cfg.value.hidden))
+    else:
+        stats = NormalizationStats.from_buffer(demos)
+        net = ValueNetwork(EncoderConfig(**cfg.value.encoder), image_size=model.image_size,
+                           state_dim=demos.metadata.state_dim, hidden=int(cfg.value.hidden),
+                           state_mean=stats.state_mean, state_std=stats.state_std)
     operator = make_value_operator(net).to(cfg.device)
     optimizer = training.make_optimizer(operator.parameters(), lr=float(cfg.value.lr), weight_decay=0.0)
     return operator, optimizer
 
 
 def value_step(value_op, value_optim, observations: TensorDictBase, targets: torch.Tensor) -> float:
-    """One gradient step of the mean squared error of ``V(o)`` (image and state of ``observations``) against
-    ``targets``; returns the loss. Both the online regression and the warm start take it."""
-    pred = value_op(observations.select(IMAGE_KEY, STATE_KEY).clone()).get("state_value")
+    """One gradient step of the mean squared error of ``V(o)`` (the entries of ``observations`` the critic reads)
+    against ``targets``; returns the loss. Both the online regression and the warm start take it."""
+    pred = value_op(observations.select(*value_op.in_keys).clone()).get("state_value")
     loss = torch.nn.functional.mse_loss(pred, targets.reshape(pred.shape))
     value_optim.zero_grad(set_to_none=True)
     loss.backward()
@@ -290,6 +312,8 @@ def decision_rows(model: MMaDAModel, batch: TensorDictBase) -> TensorDict:
     visual = model.visual_input(flat)  # the observation images, with cross-attention
     if visual is not None:
         rows.set(VISUAL_FEATURES_KEY, visual)
+    if PRIVILEGED_STATE_KEY in flat.keys(include_nested=True):  # what a privileged critic regresses on
+        rows.set(PRIVILEGED_STATE_KEY, flat.get(PRIVILEGED_STATE_KEY))
     rows.set(DECODING_PATH_KEY, flat.get(DECODING_PATH_KEY))
     for key in (ADVANTAGE_KEY, VALUE_TARGET_KEY):
         rows.set(key, flat.get(key).reshape(ids.shape[0], -1)[:, 0] if key == ADVANTAGE_KEY else flat.get(key).reshape(ids.shape[0], 1))
