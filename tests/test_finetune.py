@@ -23,8 +23,8 @@ from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import group_relative_advantages
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_policy_env
-from mmada_rl.training.checkpoint import load_checkpoint
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
+from mmada_rl.training.checkpoint import load_checkpoint
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")

@@ -86,13 +86,12 @@ def check_config(cfg: DictConfig) -> None:
     if value_steps > 0 and cfg.advantage.estimator != "gae":
         raise ValueError(f"value.pretrain_steps > 0 fits GAE's critic, but advantage.estimator={cfg.advantage.estimator} "
                          "uses none: use advantage.estimator=gae or value.pretrain_steps=0.")
-    value_input = cfg.value.get("input", "observation")
-    if value_input not in VALUE_INPUTS:
-        raise ValueError(f"value.input={value_input!r}; use observation or privileged_state.")
-    if value_input == "privileged_state" and cfg.advantage.estimator != "gae":
+    if value_input(cfg) not in VALUE_INPUTS:
+        raise ValueError(f"value.input={value_input(cfg)!r}; use observation or privileged_state.")
+    if privileged_critic(cfg) and cfg.advantage.estimator != "gae":
         raise ValueError(f"value.input=privileged_state chooses what GAE's critic reads, but advantage.estimator="
                          f"{cfg.advantage.estimator} uses no critic: use advantage.estimator=gae or value.input=observation.")
-    if value_input == "privileged_state" and value_steps > 0:
+    if privileged_critic(cfg) and value_steps > 0:
         raise ValueError("value.pretrain_steps > 0 fits the critic on the demonstrations, which hold no privileged state: "
                          "use value.pretrain_steps=0 or value.input=observation.")
     if absorbs_success(cfg) and not 0.0 < float(cfg.advantage.gamma) < 1.0:
@@ -194,10 +193,15 @@ def make_collector(cfg: DictConfig, penv: PolicyEnv) -> Collector:
 
 
 # -- value and advantages -------------------------------------------------------------
+def value_input(cfg: DictConfig) -> str:
+    """What GAE's critic reads (``value.input``, one of :data:`VALUE_INPUTS`; ``observation`` when unset)."""
+    return cfg.value.get("input", VALUE_INPUTS[0])
+
+
 def privileged_critic(cfg: DictConfig) -> bool:
     """Whether GAE's critic reads the simulator's privileged state (``value.input=privileged_state``); the training
     env then also gives it, and the policy still reads only its own observation."""
-    return cfg.value.get("input", "observation") == "privileged_state"
+    return value_input(cfg) == "privileged_state"
 
 
 def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
