@@ -421,3 +421,41 @@ def test_evaluate_runs_a_saved_diffusion_policy_and_an_in_memory_bc_policy(toy_r
         evaluate(bc, "PickCube-v1", 1, num_denoise_steps=3)
     with pytest.raises(ValueError, match=r"image_size=32 .* fitted on 64x64"):
         evaluate(bc, "PickCube-v1", 1, image_size=32)
+
+
+def test_bc_image_cnn_initialises_the_denoisers_own(toy_runs, toy_pretrain_run, pick_demos, tmp_path):
+    """``model.visual_encoder_init``: the pretraining recipe copies BC's image CNN into the denoiser's;
+    frozen it stays BC's through training, unfrozen it trains on from there; other widths are one clear error."""
+    pretrain = REPO / "recipes" / "pretrain" / "pretrain.py"
+    bc_cnn = load_policy(resolve_model_dir(toy_runs["bc"])).encoder.cnn.state_dict()  # [16, 32, 64]: conv_stack first
+    common = [f"data.dir={pick_demos}", "data.collect_episodes=0", f"tokenizers.dir={toy_pretrain_run / 'tokenizers'}",
+              "optim.total_steps=2", "optim.warmup_steps=1", "eval.episodes=0", "checkpoint.interval=2",
+              "model.denoiser_overrides.cross_attention_to_visual=true", f"model.visual_encoder_init={toy_runs['bc']}"]
+
+    def pretrain_cnn(name, *overrides) -> tuple[subprocess.CompletedProcess, dict]:
+        run_dir = tmp_path / name
+        proc = subprocess.run([sys.executable, str(pretrain), f"run_dir={run_dir}", *common, *overrides], cwd=REPO,
+                              capture_output=True, text=True, timeout=600)
+        if proc.returncode:
+            return proc, {}
+        saved = load_file(str(resolve_model_dir(run_dir) / "denoiser.safetensors"))
+        return proc, {k.removeprefix("visual_encoder.cnn."): v for k, v in saved.items() if k.startswith("visual_encoder.cnn.")}
+
+    proc, frozen = pretrain_cnn("frozen", "model.denoiser_overrides.visual_encoder_channels=[16,32,64]",
+                                "model.visual_encoder_freeze=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "the denoiser's CNN starts from" in proc.stdout and "(frozen)" in proc.stdout
+    assert len(frozen) == 12  # 3 convolutions and 3 GroupNorms, weight and bias each
+    for key, value in frozen.items():
+        torch.testing.assert_close(value, bc_cnn[key], rtol=0, atol=0)
+    proc, trained = pretrain_cnn("trained", "model.denoiser_overrides.visual_encoder_channels=[16,32,64]")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    moved = [float((trained[key] - bc_cnn[key]).abs().max()) for key in trained]
+    assert 0 < max(moved) < 0.01  # two small steps away from BC's weights, not from a fresh initialisation
+    proc, _ = pretrain_cnn("widths", "model.denoiser_overrides.visual_encoder_channels=[32,64,128]")
+    assert proc.returncode != 0
+    assert "does not begin with this encoder's conv_stack (convolution widths [32, 64, 128]" in proc.stderr
+    assert "the source CNN (convolution widths [16, 32, 64]" in proc.stderr
+    proc, _ = pretrain_cnn("ours", "model.denoiser_overrides.visual_encoder_channels=[16,32,64]",
+                           f"model.visual_encoder_init={toy_pretrain_run}")  # a masked-diffusion run, not a baseline
+    assert proc.returncode != 0 and "is not a baseline policy (BC or Diffusion Policy)" in proc.stderr

@@ -130,6 +130,9 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["model.action_readout=mean"], "VQActionTokenizer codes have no mean"),
         (["model.state_differences=[[26,19]]"], "covers 29 dimensions, not the demonstrations' 29 plus the 1 of "
                                                 "model.state_differences=[[26, 19]]"),
+        (["model.visual_encoder_freeze=true"], "model.visual_encoder_freeze=true fixes a CNN copied from "
+                                               "model.visual_encoder_init"),
+        (["model.visual_encoder_init=runs/bc"], "copies a CNN into the denoiser's own, which it does not have"),
     ],
 )
 def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):

@@ -119,6 +119,36 @@ class ConvPatchEncoder(nn.Module):
     def out_features(self) -> int:
         return self.channels[-1]
 
+    def load_conv_stack(self, source: nn.Module, *, freeze: bool = False) -> None:
+        """Copy the weights of another :func:`conv_stack` of the same widths into this encoder's CNN.
+
+        ``source`` may be longer than the stack (the baselines' image encoder continues
+        it with its pooling and projection): its first ``3 * len(channels)`` modules are
+        read. This starts the denoiser from a CNN trained by another policy on the same
+        demonstrations, e.g. the BC baseline's (recipe option ``model.visual_encoder_init``).
+        With ``freeze`` the copied CNN stays fixed (``requires_grad`` off); the keypoint
+        read-out, when present, is not copied and keeps training.
+
+        Examples:
+            >>> bc_cnn = nn.Sequential(*conv_stack((16, 32, 64)), nn.Flatten())
+            >>> enc = ConvPatchEncoder((16, 32, 64))
+            >>> enc.load_conv_stack(bc_cnn, freeze=True)
+            >>> torch.equal(enc.cnn[0].weight, bc_cnn[0].weight), enc.cnn[0].weight.requires_grad
+            (True, False)
+        """
+        layers = list(source.children())[:len(self.cnn)]
+        if [repr(m) for m in layers] != [repr(m) for m in self.cnn]:  # kinds, widths, strides, norm groups
+            def describe(modules) -> str:
+                modules = list(modules)
+                widths = [m.out_channels for m in modules if isinstance(m, nn.Conv2d)]
+                groups = [m.num_groups for m in modules if isinstance(m, nn.GroupNorm)]
+                return f"convolution widths {widths}, GroupNorm groups {groups}"
+            raise ValueError(f"the source CNN ({describe(source.children())}) does not begin with this encoder's "
+                             f"conv_stack ({describe(self.cnn)}); set the denoiser's visual_encoder_channels to the "
+                             "source's widths, or train the source with these.")
+        self.cnn.load_state_dict(nn.Sequential(*layers).state_dict())
+        self.cnn.requires_grad_(not freeze)
+
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         if image.ndim != 4 or image.shape[1] != 3:
             raise ValueError(f"images: expected [B, 3, H, W], got {list(image.shape)}.")

@@ -115,7 +115,44 @@ def make_model(cfg: DictConfig, tokenizers: Tokenizers) -> MMaDAModel:
         camera_fov=cfg.env.camera_fov,  # a per-task mapping becomes a plain dict in MMaDAConfig
         action_readout=str(m.action_readout),
     )
-    return MMaDAModel(config, tokenizers).to(cfg.device)
+    model = MMaDAModel(config, tokenizers)
+    init_visual_encoder(cfg, model)
+    return model.to(cfg.device)
+
+
+def init_visual_encoder(cfg: DictConfig, model: MMaDAModel) -> None:
+    """``model.visual_encoder_init``: copy a baseline policy's image CNN (e.g. BC trained on the same
+    demonstrations) into the denoiser's own CNN; ``model.visual_encoder_freeze`` keeps it fixed."""
+    m = cfg.model
+    source, freeze = m.get("visual_encoder_init", None), bool(m.get("visual_encoder_freeze", False))
+    if source is None:
+        if freeze:
+            raise ValueError("model.visual_encoder_freeze=true fixes a CNN copied from model.visual_encoder_init; "
+                             "set that to a baseline run (e.g. runs/bc_PickCube-v1_s0) or leave the freeze off.")
+        return
+    encoder = model.denoiser.visual_encoder
+    if encoder is None:
+        raise ValueError("model.visual_encoder_init copies a CNN into the denoiser's own, which it does not have: "
+                         "set model.denoiser_overrides.visual_encoder_channels (e.g. [32, 64, 128]) and "
+                         "cross_attention_to_visual=true.")
+    from mmada_rl.baselines import is_policy_dir, load_policy
+    from mmada_rl.evaluation import resolve_model_dir
+
+    directory = resolve_model_dir(source)
+    if not is_policy_dir(directory):
+        raise ValueError(f"model.visual_encoder_init={source!r} is not a baseline policy (BC or Diffusion Policy); "
+                         f"{directory} holds another kind of model.")
+    policy = load_policy(directory)
+    if policy.encoder.cnn is None:
+        raise ValueError(f"model.visual_encoder_init={source!r} is a state-based policy: it has no image CNN.")
+    for task in task_list(cfg):
+        env = make_env_config(cfg, task)
+        if (policy.image_size, policy.camera_fov) != (env.image_size, env.camera_fov):
+            raise ValueError(f"model.visual_encoder_init={source!r} read {policy.image_size}px images through a "
+                             f"camera_fov={policy.camera_fov} camera; this run's {task} images are {env.image_size}px "
+                             f"with camera_fov={env.camera_fov}.")
+    encoder.load_conv_stack(policy.encoder.cnn, freeze=freeze)
+    print(f"[pretrain] the denoiser's CNN starts from {directory}'s" + (" (frozen)" if freeze else ""))
 
 
 def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
