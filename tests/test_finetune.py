@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -194,6 +195,35 @@ def test_the_critic_learns_the_demonstrations_returns(model, pick_demos):
     assert error() < 0.5 * before
     cfg.value.pretrain_steps = 0
     assert utils.pretrain_value(cfg, value_op, value_optim, demos) is None  # the default: nothing done
+
+
+def test_privileged_critic_standardises_its_input_by_running_moments():
+    """Moments merged batch by batch equal those of all the states at once; the value step feeds them; without
+    ``normalize`` (or before any state) the MLP reads the raw state."""
+    from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY
+    from mmada_rl.policy.value import PrivilegedValueNetwork, make_value_operator
+
+    utils = recipe_utils()
+    torch.manual_seed(0)
+    states = torch.randn(50, 6) * torch.tensor([0.01, 0.1, 1.0, 10.0, 30.0, 0.5]) + torch.arange(6.0)
+    net = PrivilegedValueNetwork(6, hidden=8)
+    assert torch.equal(net.normalized(states), states)  # nothing observed yet
+    for chunk in states.split([7, 20, 23]):
+        net.observe(chunk)
+    assert int(net.count) == 50
+    torch.testing.assert_close(net.mean.float(), states.mean(0))
+    expected = ((states - states.mean(0)) / states.std(0)).clamp(-5, 5)
+    torch.testing.assert_close(net.normalized(states), expected, rtol=1e-4, atol=1e-5)
+    raw = PrivilegedValueNetwork(6, hidden=8, normalize=False)
+    raw.observe(states)
+    assert torch.equal(raw.normalized(states), states)
+
+    value_op = make_value_operator(PrivilegedValueNetwork(6, hidden=8))
+    rows = TensorDict({PRIVILEGED_STATE_KEY: states, VALUE_TARGET_KEY: torch.ones(50, 1)}, batch_size=[50])
+    optimizer = torch.optim.Adam(value_op.parameters(), lr=1e-3)
+    utils.value_step(value_op, optimizer, rows[:10], rows[:10].get(VALUE_TARGET_KEY))
+    utils.value_step(value_op, optimizer, rows[10:], rows[10:].get(VALUE_TARGET_KEY))
+    assert int(value_op.module.count) == 50 and "module.count" in value_op.state_dict()
 
 
 def test_absorbing_success_reward_refuses_an_undiscounted_value():
@@ -637,6 +667,17 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]
         first = next(v for k, v in value.items() if k.endswith("mlp.0.weight"))
         assert first.shape[-1] == 70  # PickCube-v1's privileged state
+        assert float(value["module.count"]) > 0 and float(value["module.sum_sq"].sum()) > 0  # its input moments
+        # benchmarks/critic_fit.py refits such a critic on the run's stored states and value targets
+        bench = load_script("benchmarks/critic_fit.py", "critic_fit")
+        out = tmp_path / "critic_fit"
+        assert bench.main(["--online", str(tmp_path / name / "online_buffer"), "--steps", "3", "--holdout", "0.5",
+                           "--batch-size", "4", "--hidden", "16", "--out", str(out)]) == 0
+        fitted = json.loads((out / "critic_fit.json").read_text())
+        assert fitted["fitted"] + fitted["held_out"] == fitted["rows"] >= 4
+        assert list(fitted["results"]) == ["raw", "standardised", "standardised, clipped to [-5, 5]"]
+        assert all(math.isfinite(r["held_out_mse"]) and r["held_out_mse"] >= 0 for r in fitted["results"].values())
+        assert (out / "critic_fit.png").stat().st_size > 0
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
         history = json.loads((tmp_path / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
@@ -696,8 +737,10 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "advantage.absorbing_success=false" in fresh
     assert "advantage.absorbing_success=true" in compare.command("mmada_gae_noise_absorbing", "PickCube-v1", 0, 1000, out,
                                                                  "x", 5, 500)
-    assert "value.input=privileged_state" in compare.command("mmada_gae_noise_privileged", "PickCube-v1", 0, 1000, out,
-                                                             "x", 5, 500)
+    privileged = compare.command("mmada_gae_noise_privileged", "PickCube-v1", 0, 1000, out, "x", 5, 500)
+    assert "value.input=privileged_state" in privileged and not any("normalize_privileged" in a for a in privileged)
+    raw = compare.command("mmada_gae_noise_privileged_raw", "PickCube-v1", 0, 1000, out, "x", 5, 500)
+    assert "value.input=privileged_state" in raw and "value.normalize_privileged=false" in raw
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")

@@ -70,6 +70,8 @@ _GAE_NOISE_ABSORBING = [a.replace("absorbing_success=false", "absorbing_success=
 _GAE_NOISE_VDEMO = [*_GAE_NOISE_ABSORBING, "value.pretrain_steps=2000"]
 #: or the critic reading the simulator's privileged state (an asymmetric critic; the policy still reads its pixels)
 _GAE_NOISE_PRIVILEGED = [*_GAE_NOISE_ABSORBING, "value.input=privileged_state"]
+#: the same critic reading the raw state, unscaled (the first run of it; benchmarks/critic_fit.py shows why it changed)
+_GAE_NOISE_PRIVILEGED_RAW = [*_GAE_NOISE_PRIVILEGED, "value.normalize_privileged=false"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -111,8 +113,14 @@ METHODS = {
     "mmada_gae_noise_privileged": ("MMaDA-VLA + per-chunk GAE advantages from a critic reading the simulator's "
                                    "privileged state, success absorbing, zero-mean signed weights, on the greedy "
                                    "policy's noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, goals "
-                                   "weighted too; the policy reads only its pixels and proprio)",
+                                   "weighted too; the policy reads only its pixels and proprio; the state "
+                                   "standardised by running moments)",
                                    "rgb+proprio", _GAE_NOISE_PRIVILEGED, True),
+    "mmada_gae_noise_privileged_raw": ("MMaDA-VLA + per-chunk GAE advantages from a critic reading the simulator's "
+                                       "privileged state unscaled, success absorbing, zero-mean signed weights, on the "
+                                       "greedy policy's noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, "
+                                       "goals weighted too; the policy reads only its pixels and proprio)",
+                                       "rgb+proprio", _GAE_NOISE_PRIVILEGED_RAW, True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          [*_FINETUNE, "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),

@@ -208,7 +208,8 @@ def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
     """Chunk-level value network as a ``ValueOperator``, with its optimizer: an encoder of the image and the proprio
     state and an MLP head, or (``value.input=privileged_state``) an MLP over the simulator's state."""
     if privileged_critic(cfg):
-        net = PrivilegedValueNetwork(privileged_state_dim(cfg.env.task), hidden=int(cfg.value.hidden))
+        net = PrivilegedValueNetwork(privileged_state_dim(cfg.env.task), hidden=int(cfg.value.hidden),
+                                     normalize=bool(cfg.value.get("normalize_privileged", True)))
     else:
         stats = NormalizationStats.from_buffer(demos)
         net = ValueNetwork(EncoderConfig(**cfg.value.encoder), image_size=model.image_size,
@@ -221,8 +222,13 @@ def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
 
 def value_step(value_op, value_optim, observations: TensorDictBase, targets: torch.Tensor) -> float:
     """One gradient step of the mean squared error of ``V(o)`` (the entries of ``observations`` the critic reads)
-    against ``targets``; returns the loss. Both the online regression and the warm start take it."""
-    pred = value_op(observations.select(*value_op.in_keys).clone()).get("state_value")
+    against ``targets``; returns the loss. Both the online regression and the warm start take it. A critic with
+    running input moments (:meth:`~mmada_rl.policy.value.PrivilegedValueNetwork.observe`) first takes in these inputs."""
+    inputs = observations.select(*value_op.in_keys).clone()
+    observe = getattr(value_op.module, "observe", None)
+    if observe is not None:
+        observe(*(inputs.get(key) for key in value_op.in_keys))
+    pred = value_op(inputs).get("state_value")
     loss = torch.nn.functional.mse_loss(pred, targets.reshape(pred.shape))
     value_optim.zero_grad(set_to_none=True)
     loss.backward()

@@ -1,0 +1,133 @@
+"""How well can the privileged-state critic fit a fine-tuning run's value targets, with and without scaled inputs?
+
+    python benchmarks/critic_fit.py \\
+        --online runs/compare_pick_hold/PickCube-v1/mmada_gae_noise_privileged/s2/online_buffer
+
+A fine-tuning run with ``value.input=privileged_state`` stores each decision's
+simulator state (``("observation", "privileged_state")``) and its GAE value
+target in its online buffer. This fits a fresh
+:class:`~mmada_rl.policy.value.PrivilegedValueNetwork` (the recipe's critic, its
+width, learning rate and minibatch size) to those targets offline, on a random
+``1 - --holdout`` of the rows, and scores the rest, for each input scaling:
+
+* ``raw``: the state as the simulator gives it (what the recipe's critic reads);
+* ``standardised``: each dimension minus its mean over the fitting rows, over its
+  standard deviation (floored at 1e-3);
+* ``standardised, clipped to [-5, 5]``: the same, clipped (as running observation
+  normalisers in RL do).
+
+It reports the held-out and fitting mean squared errors and the share of the
+held-out targets' variance explained. The targets were made with the run's own
+critic, so this measures how well a critic of this form can follow them, not
+which advantages a better critic would have given.
+
+Writes ``benchmarks/results/critic_fit.{json,md,png}`` (``--name`` renames them).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
+from finetune_gradients import load_online_rows  # noqa: E402
+
+from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY  # noqa: E402
+from mmada_rl.policy.value import PrivilegedValueNetwork  # noqa: E402
+
+SCALINGS = ("raw", "standardised", "standardised, clipped to [-5, 5]")
+
+
+def scaled(states: torch.Tensor, fit_rows: torch.Tensor, scaling: str) -> torch.Tensor:
+    """``states`` under ``scaling``, its statistics taken over ``fit_rows`` only."""
+    if scaling == "raw":
+        return states
+    mean, std = states[fit_rows].mean(0), states[fit_rows].std(0).clamp_min(1e-3)
+    standard = (states - mean) / std
+    return standard.clamp(-5.0, 5.0) if "clipped" in scaling else standard
+
+
+def fit(states, targets, fit_rows, held_out, *, hidden: int, lr: float, batch_size: int, steps: int, seed: int) -> dict:
+    """Adam on the mean squared error from a seeded initialisation; the errors on both row sets at the end."""
+    torch.manual_seed(seed)
+    net = PrivilegedValueNetwork(states.shape[-1], hidden=hidden)
+    optimizer = torch.optim.Adam(net.parameters(), lr=lr)
+    generator = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        idx = fit_rows[torch.randint(len(fit_rows), (batch_size,), generator=generator)]
+        loss = torch.nn.functional.mse_loss(net(states[idx]), targets[idx])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        mse = {name: float(torch.nn.functional.mse_loss(net(states[rows]), targets[rows]))
+               for name, rows in (("held_out_mse", held_out), ("fit_mse", fit_rows))}
+    variance = float(targets[held_out].var())
+    return {**mse, "held_out_variance": variance, "explained": 1.0 - mse["held_out_mse"] / variance}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--online", type=Path, required=True,
+                        help="online_buffer/ of a fine-tuning run with value.input=privileged_state")
+    parser.add_argument("--holdout", type=float, default=0.2, help="share of the rows scored, not fitted (default: 0.2)")
+    parser.add_argument("--steps", type=int, default=3000, help="minibatch steps of each fit (default: 3000)")
+    parser.add_argument("--hidden", type=int, default=256, help="critic width (default: 256, maniskill.yaml's value.hidden)")
+    parser.add_argument("--lr", type=float, default=3e-4, help="learning rate (default: 3e-4, the recipe's value.lr)")
+    parser.add_argument("--batch-size", type=int, default=64, help="rows per step (default: 64, maniskill.yaml's)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--name", default="critic_fit")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    if not 0.0 < args.holdout < 1.0 or args.steps < 1:
+        parser.error("--holdout must lie in (0, 1) and --steps be >= 1.")
+
+    rows = load_online_rows(args.online)
+    if PRIVILEGED_STATE_KEY not in rows.keys(include_nested=True):
+        raise SystemExit(f"{args.online} holds no {PRIVILEGED_STATE_KEY}: the run's critic read the observation "
+                         "(fine-tune with value.input=privileged_state).")
+    states = rows.get(PRIVILEGED_STATE_KEY).float()
+    targets = rows.get(VALUE_TARGET_KEY).float().reshape(-1, 1)
+    order = torch.randperm(len(rows), generator=torch.Generator().manual_seed(args.seed))
+    split = int(round(len(rows) * (1.0 - args.holdout)))
+    fit_rows, held_out = order[:split], order[split:]
+    if len(fit_rows) < 2 or len(held_out) < 2:
+        raise SystemExit(f"{args.online} holds {len(rows)} rows: too few to fit and score (--holdout {args.holdout}).")
+
+    results = {s: fit(scaled(states, fit_rows, s), targets, fit_rows, held_out, hidden=args.hidden, lr=args.lr,
+                      batch_size=args.batch_size, steps=args.steps, seed=args.seed) for s in SCALINGS}
+    spread = states[fit_rows].std(0)
+    widest = spread.argsort(descending=True)[:3].tolist()
+    table = markdown_table(["input", "held-out MSE", "fitting MSE", "held-out variance explained"],
+                           [[s, f"{r['held_out_mse']:.1f}", f"{r['fit_mse']:.1f}", f"{r['explained']:.2f}"]
+                            for s, r in results.items()])
+    markdown = (f"# Critic fit on `{args.online}`\n\n{len(rows)} rows ({len(fit_rows)} fitted, {len(held_out)} held out), "
+                f"{states.shape[-1]}-dimensional privileged state; value targets {float(targets.min()):.1f} to "
+                f"{float(targets.max()):.1f} (held-out variance {results['raw']['held_out_variance']:.1f}); "
+                f"{args.steps} steps of {args.batch_size} rows. The widest state dimensions: "
+                + ", ".join(f"{d} (std {float(spread[d]):.2f})" for d in widest) + ".\n\n" + table)
+    payload = {"online": str(args.online), "rows": len(rows), "fitted": len(fit_rows), "held_out": len(held_out),
+               "steps": args.steps, "hidden": args.hidden, "lr": args.lr, "batch_size": args.batch_size,
+               "widest_dims": {str(d): float(spread[d]) for d in widest}, "results": results}
+    json_path, md_path = write_results(args.name, payload, markdown, args.out)
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.bar(range(len(SCALINGS)), [results[s]["explained"] for s in SCALINGS])
+    ax.set_xticks(range(len(SCALINGS)), ["raw", "standardised", "std. + clip"])
+    ax.set_ylabel("held-out variance explained")
+    ax.set_title("privileged-state critic on the run's value targets")
+    png = save_figure(fig, args.out / f"{args.name}.png")
+    print(markdown)
+    print(f"wrote {json_path}, {md_path}, {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
