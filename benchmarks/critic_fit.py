@@ -14,7 +14,9 @@ width, learning rate and minibatch size) to those targets offline, on a random
 * ``standardised``: each dimension minus its mean over the fitting rows, over its
   standard deviation (floored at 1e-3);
 * ``standardised, clipped to [-5, 5]``: the same, clipped (as running observation
-  normalisers in RL do).
+  normalisers in RL do): the recipe's critic itself
+  (``value.normalize_privileged=true``), its moments taken in from the fitting rows
+  by :meth:`~mmada_rl.policy.value.PrivilegedValueNetwork.observe`.
 
 It reports the held-out and fitting mean squared errors and the share of the
 held-out targets' variance explained. The targets were made with the run's own
@@ -39,21 +41,24 @@ from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY  # noqa: E402
 from mmada_rl.policy.value import PrivilegedValueNetwork  # noqa: E402
 
 SCALINGS = ("raw", "standardised", "standardised, clipped to [-5, 5]")
+#: the scaling the recipe's critic applies itself (PrivilegedValueNetwork(normalize=True))
+RECIPE_SCALING = SCALINGS[2]
 
 
-def scaled(states: torch.Tensor, fit_rows: torch.Tensor, scaling: str) -> torch.Tensor:
-    """``states`` under ``scaling``, its statistics taken over ``fit_rows`` only."""
-    if scaling == "raw":
-        return states
-    mean, std = states[fit_rows].mean(0), states[fit_rows].std(0).clamp_min(1e-3)
-    standard = (states - mean) / std
-    return standard.clamp(-5.0, 5.0) if "clipped" in scaling else standard
+def standardised(states: torch.Tensor, fit_rows: torch.Tensor) -> torch.Tensor:
+    """``states`` standardised by the moments of ``fit_rows``, not clipped (a scaling the recipe does not offer)."""
+    return (states - states[fit_rows].mean(0)) / states[fit_rows].std(0).clamp_min(1e-3)
 
 
-def fit(states, targets, fit_rows, held_out, *, hidden: int, lr: float, batch_size: int, steps: int, seed: int) -> dict:
+def fit(states, targets, fit_rows, held_out, *, scaling: str, hidden: int, lr: float, batch_size: int, steps: int,
+        seed: int) -> dict:
     """Adam on the mean squared error from a seeded initialisation; the errors on both row sets at the end."""
     torch.manual_seed(seed)
-    net = PrivilegedValueNetwork(states.shape[-1], hidden=hidden)
+    net = PrivilegedValueNetwork(states.shape[-1], hidden=hidden, normalize=scaling == RECIPE_SCALING)
+    if scaling == RECIPE_SCALING:
+        net.observe(states[fit_rows])
+    elif scaling != "raw":
+        states = standardised(states, fit_rows)
     optimizer = torch.optim.Adam(net.parameters(), lr=lr)
     generator = torch.Generator().manual_seed(seed)
     for _ in range(steps):
@@ -97,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     if len(fit_rows) < 2 or len(held_out) < 2:
         raise SystemExit(f"{args.online} holds {len(rows)} rows: too few to fit and score (--holdout {args.holdout}).")
 
-    results = {s: fit(scaled(states, fit_rows, s), targets, fit_rows, held_out, hidden=args.hidden, lr=args.lr,
+    results = {s: fit(states, targets, fit_rows, held_out, scaling=s, hidden=args.hidden, lr=args.lr,
                       batch_size=args.batch_size, steps=args.steps, seed=args.seed) for s in SCALINGS}
     spread = states[fit_rows].std(0)
     widest = spread.argsort(descending=True)[:3].tolist()
