@@ -522,28 +522,76 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
     assert utils.make_demo_windows(bare, demos, model).sampler.no_start is None
 
 
-def test_mixed_batches_carry_the_images_of_a_policy_with_its_own_cnn(model, pick_demos):
-    """With ``visual_encoder_channels`` every row, online or demonstration, brings the image its CNN reads."""
-    from mmada_rl.data import DemoBuffer
-    from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
+def seeing_model(model: MMaDAModel) -> MMaDAModel:
+    """``model`` rebuilt (fresh weights) with its own CNN over the observation image."""
     from mmada_rl.policy import MMaDAConfig, Tokenizers
 
-    utils = recipe_utils()
     overrides = {"cross_attention_to_visual": True, "visual_encoder_channels": [8, 16, 32]}
     config = MMaDAConfig(**{**model.config.__dict__, "denoiser_overrides": overrides})
-    seeing = MMaDAModel(config, Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer,
-                                           model.proprio_tokenizer))
-    cfg = OmegaConf.create({"seed": 0, "demos": {"ratio": 0.25}, "replay_buffer": {"batch_size": 8, "capacity": 64}})
+    return MMaDAModel(config, Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer,
+                                         model.proprio_tokenizer))
+
+
+def mixed_image_batch(utils, seeing: MMaDAModel, pick_demos, cfg) -> TensorDict:
+    """A loss batch of random online rows (with images) and demonstration windows, ``cfg.demos.ratio`` of them demos."""
+    from mmada_rl.data import DemoBuffer
+    from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
+
     online = utils.make_online_buffer(cfg)
     L, K, size = seeing.layout.length, seeing.config.chunk_size, seeing.image_size
     online.extend(TensorDict({SEQUENCE_KEY: torch.zeros(20, L, dtype=torch.long), ACTION_IS_PAD_KEY: torch.zeros(20, K, dtype=torch.bool),
                               ADVANTAGE_KEY: torch.randn(20),
                               VISUAL_FEATURES_KEY: torch.randint(0, 255, (20, 3, size, size), dtype=torch.uint8)}, [20]))
-    batch = utils.mixed_batch(seeing, online.sample(), utils.make_demo_windows(cfg, DemoBuffer.open(pick_demos), seeing))
+    return utils.mixed_batch(seeing, online.sample(), utils.make_demo_windows(cfg, DemoBuffer.open(pick_demos), seeing))
+
+
+def test_mixed_batches_carry_the_images_of_a_policy_with_its_own_cnn(model, pick_demos):
+    """With ``visual_encoder_channels`` every row, online or demonstration, brings the image its CNN reads."""
+    from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
+
+    utils = recipe_utils()
+    seeing = seeing_model(model)
+    cfg = OmegaConf.create({"seed": 0, "demos": {"ratio": 0.25}, "replay_buffer": {"batch_size": 8, "capacity": 64}})
+    batch = mixed_image_batch(utils, seeing, pick_demos, cfg)
+    size = seeing.image_size
     assert batch[VISUAL_FEATURES_KEY].shape == (8, 3, size, size)
     loss = RewardWeightedDiffusionLoss(seeing.denoiser)(batch)
     loss["loss_action"].backward()
     assert seeing.denoiser.visual_encoder.cnn[0].weight.grad.abs().sum() > 0
+
+
+def test_a_cnn_frozen_while_pretraining_stays_frozen_while_fine_tuning(toy_pretrain_run, model, pick_demos, tmp_path):
+    """``optim.freeze_visual_encoder=null`` follows the pretraining run's ``model.visual_encoder_freeze``, a value
+    overrides it; an update then leaves the fixed CNN as it was and moves the rest of the denoiser."""
+    from mmada_rl.training import optimizer_step
+
+    utils = recipe_utils()
+    checkpoint = tmp_path / "checkpoint"  # a pretraining checkpoint whose run kept a copied CNN fixed
+    checkpoint.mkdir()
+    (checkpoint / "model").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
+    (checkpoint / "config.json").write_text(json.dumps({"model": {"visual_encoder_freeze": True}}))
+    cfg = OmegaConf.create({"seed": 0, "pretrained": str(checkpoint), "optim": {"lr": 1e-3, "weight_decay": 0.01,
+                            "freeze_visual_encoder": None}, "demos": {"ratio": 0.25},
+                            "replay_buffer": {"batch_size": 8, "capacity": 64}})
+    assert utils.freezes_visual_encoder(cfg)
+    assert not utils.freezes_visual_encoder(OmegaConf.merge(cfg, {"optim": {"freeze_visual_encoder": False}}))
+    assert not utils.freezes_visual_encoder(OmegaConf.merge(cfg, {"pretrained": str(toy_pretrain_run)}))  # not frozen there
+
+    seeing = seeing_model(model)
+    optimizer = utils.make_optim(cfg, seeing)
+    before = {k: v.clone() for k, v in seeing.denoiser.state_dict().items()}
+    losses = RewardWeightedDiffusionLoss(seeing.denoiser)(mixed_image_batch(utils, seeing, pick_demos, cfg))
+    optimizer_step(losses, seeing.denoiser.parameters(), optimizer, grad_clip=1.0)
+    after = seeing.denoiser.state_dict()
+    cnn = [k for k in before if k.startswith("visual_encoder.cnn.")]
+    assert len(cnn) == 12 and all(torch.equal(before[k], after[k]) for k in cnn)
+    assert any(not torch.equal(before[k], after[k]) for k in before if k not in cnn)
+
+    trainable = seeing_model(model)
+    utils.make_optim(OmegaConf.merge(cfg, {"optim": {"freeze_visual_encoder": False}}), trainable)
+    assert all(p.requires_grad for p in trainable.denoiser.visual_encoder.parameters())
+    with pytest.raises(ValueError, match="this policy has none"):
+        utils.make_optim(cfg, MMaDAModel.load(utils.resolve_model_dir(toy_pretrain_run)))  # it reads image tokens
 
 
 def test_execution_noise_explores_around_the_greedy_chunk_and_stores_the_executed_tokens(model):

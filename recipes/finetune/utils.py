@@ -403,13 +403,18 @@ def split_batch(cfg: DictConfig) -> tuple[int, int]:
     return total - demo, demo
 
 
+def pretraining_config(cfg: DictConfig) -> dict:
+    """The pretraining run's configuration (its checkpoint's ``config.json``); empty for a bare saved model."""
+    pretrained = cfg.get("pretrained")
+    saved = resolve_model_dir(pretrained).parent / CONFIG_FILE if pretrained is not None else None
+    return json.loads(saved.read_text()) if saved is not None and saved.is_file() else {}
+
+
 def demo_window_skips(cfg: DictConfig) -> dict:
     """The window options (:data:`~mmada_rl.data.windows.WINDOW_SKIPS`) of the demonstration windows: ``demos.<option>``,
     or where that is null (the default), the pretraining run's ``data.<option>`` (its checkpoint's ``config.json``),
     so fine-tuning keeps drawing the windows the policy was pretrained on; off for a bare saved model."""
-    pretrained = cfg.get("pretrained")
-    saved = resolve_model_dir(pretrained).parent / CONFIG_FILE if pretrained is not None else None
-    data = json.loads(saved.read_text()).get("data", {}) if saved is not None and saved.is_file() else {}
+    data = pretraining_config(cfg).get("data", {})
     given = {name: cfg.demos.get(name) for name in WINDOW_SKIPS}
     return window_skips({**data, **{name: value for name, value in given.items() if value is not None}})
 
@@ -468,7 +473,23 @@ def make_demo_anchor(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss 
                                goal_weight=coef * float(cfg.loss.goal_weight))
 
 
+def freezes_visual_encoder(cfg: DictConfig) -> bool:
+    """``optim.freeze_visual_encoder``, or where null (the default) the pretraining run's ``model.visual_encoder_freeze``:
+    a CNN copied from a baseline and kept fixed while pretraining stays fixed while fine-tuning."""
+    given = cfg.optim.get("freeze_visual_encoder")
+    if given is not None:
+        return bool(given)
+    return bool(pretraining_config(cfg).get("model", {}).get("visual_encoder_freeze", False))
+
+
 def make_optim(cfg: DictConfig, model: MMaDAModel):
+    """AdamW over the denoiser; its image CNN left out (``requires_grad`` off) where :func:`freezes_visual_encoder`."""
+    if freezes_visual_encoder(cfg):
+        if model.denoiser.visual_encoder is None:
+            raise ValueError("optim.freeze_visual_encoder=true fixes the denoiser's own CNN, but this policy has none "
+                             "(it reads image tokens): set optim.freeze_visual_encoder=false or null.")
+        model.denoiser.visual_encoder.cnn.requires_grad_(False)
+        print("[finetune] the denoiser's CNN stays fixed (optim.freeze_visual_encoder)")
     return training.make_optimizer(model.denoiser.parameters(), lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay))
 
 
