@@ -12,11 +12,12 @@ width, learning rate and minibatch size) to those targets offline, on a random
 
 * ``raw``: the state as the simulator gives it (what the recipe's critic reads);
 * ``standardised``: each dimension minus its mean over the fitting rows, over its
-  standard deviation (floored at 1e-3);
+  standard deviation (floored at 1e-3), unclipped (``clip=inf``);
 * ``standardised, clipped to [-5, 5]``: the same, clipped (as running observation
-  normalisers in RL do): the recipe's critic itself
-  (``value.normalize_privileged=true``), its moments taken in from the fitting rows
-  by :meth:`~mmada_rl.policy.value.PrivilegedValueNetwork.observe`.
+  normalisers in RL do): the recipe's critic itself (``value.normalize_privileged=true``).
+
+Both scaled rows are the network's own normaliser, its moments taken in from the
+fitting rows by :meth:`~mmada_rl.policy.value.PrivilegedValueNetwork.observe`.
 
 It reports the held-out and fitting mean squared errors and the share of the
 held-out targets' variance explained. The targets were made with the run's own
@@ -28,6 +29,7 @@ Writes ``benchmarks/results/critic_fit.{json,md,png}`` (``--name`` renames them)
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -40,25 +42,17 @@ from finetune_gradients import load_online_rows  # noqa: E402
 from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY  # noqa: E402
 from mmada_rl.policy.value import PrivilegedValueNetwork  # noqa: E402
 
-SCALINGS = ("raw", "standardised", "standardised, clipped to [-5, 5]")
-#: the scaling the recipe's critic applies itself (PrivilegedValueNetwork(normalize=True))
-RECIPE_SCALING = SCALINGS[2]
-
-
-def standardised(states: torch.Tensor, fit_rows: torch.Tensor) -> torch.Tensor:
-    """``states`` standardised by the moments of ``fit_rows``, not clipped (a scaling the recipe does not offer)."""
-    return (states - states[fit_rows].mean(0)) / states[fit_rows].std(0).clamp_min(1e-3)
+#: each input scaling and the PrivilegedValueNetwork arguments that give it (the last is the recipe's critic)
+SCALINGS = {"raw": {"normalize": False}, "standardised": {"normalize": True, "clip": math.inf},
+            "standardised, clipped to [-5, 5]": {"normalize": True, "clip": 5.0}}
 
 
 def fit(states, targets, fit_rows, held_out, *, scaling: str, hidden: int, lr: float, batch_size: int, steps: int,
         seed: int) -> dict:
     """Adam on the mean squared error from a seeded initialisation; the errors on both row sets at the end."""
     torch.manual_seed(seed)
-    net = PrivilegedValueNetwork(states.shape[-1], hidden=hidden, normalize=scaling == RECIPE_SCALING)
-    if scaling == RECIPE_SCALING:
-        net.observe(states[fit_rows])
-    elif scaling != "raw":
-        states = standardised(states, fit_rows)
+    net = PrivilegedValueNetwork(states.shape[-1], hidden=hidden, **SCALINGS[scaling])
+    net.observe(states[fit_rows])  # the moments the scaled rows read (the raw critic ignores them)
     optimizer = torch.optim.Adam(net.parameters(), lr=lr)
     generator = torch.Generator().manual_seed(seed)
     for _ in range(steps):

@@ -214,6 +214,13 @@ def test_privileged_critic_standardises_its_input_by_running_moments():
     torch.testing.assert_close(net.mean.float(), states.mean(0))
     expected = ((states - states.mean(0)) / states.std(0)).clamp(-5, 5)
     torch.testing.assert_close(net.normalized(states), expected, rtol=1e-4, atol=1e-5)
+    unclipped = PrivilegedValueNetwork(6, hidden=8, clip=math.inf)
+    unclipped.observe(states)
+    far = (states.mean(0) + 10 * states.std(0)).unsqueeze(0)  # ten standard deviations out in every dimension
+    torch.testing.assert_close(unclipped.normalized(far), torch.full((1, 6), 10.0), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(net.normalized(far), torch.full((1, 6), 5.0))
+    with pytest.raises(ValueError, match="clip must be positive"):
+        PrivilegedValueNetwork(6, clip=0.0)
     raw = PrivilegedValueNetwork(6, hidden=8, normalize=False)
     raw.observe(states)
     assert torch.equal(raw.normalized(states), states)

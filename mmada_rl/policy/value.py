@@ -50,7 +50,7 @@ class PrivilegedValueNetwork(nn.Module):
     The state mixes metres, quaternions, joint angles and velocities: on PickCube-v1 the cube's
     angular velocity reaches 27 rad/s while positions move by centimetres. With ``normalize``
     each dimension is standardised by running moments of the states the critic has been fitted
-    on (:meth:`observe`, which the recipe's value step calls) and clipped to ``[-5, 5]``, as
+    on (:meth:`observe`, which the recipe's value step calls) and clipped to ``[-clip, clip]``, as
     running observation normalisers in RL do; the moments are buffers, so they are saved and
     resumed with the weights.
 
@@ -58,6 +58,7 @@ class PrivilegedValueNetwork(nn.Module):
         state_dim: size of the privileged state (:attr:`mmada_rl.envs.EnvConfig.privileged_state`).
         hidden: width of the two hidden layers.
         normalize: standardise the input by running moments (``False``: the raw state).
+        clip: bound of the standardised input (``math.inf``: unclipped).
 
     Examples:
         >>> import torch
@@ -72,13 +73,14 @@ class PrivilegedValueNetwork(nn.Module):
     """
 
     in_keys = [PRIVILEGED_STATE_KEY]
-    CLIP = 5.0
 
-    def __init__(self, state_dim: int, hidden: int = 256, normalize: bool = True) -> None:
+    def __init__(self, state_dim: int, hidden: int = 256, normalize: bool = True, clip: float = 5.0) -> None:
         super().__init__()
         if state_dim < 1 or hidden < 1:
             raise ValueError(f"state_dim and hidden must be positive, got {state_dim!r} and {hidden!r}.")
-        self.normalize = bool(normalize)
+        if not clip > 0:
+            raise ValueError(f"clip must be positive, got {clip!r}.")
+        self.normalize, self.clip = bool(normalize), float(clip)
         self.register_buffer("count", torch.zeros((), dtype=torch.float64))
         self.register_buffer("mean", torch.zeros(state_dim, dtype=torch.float64))
         self.register_buffer("sum_sq", torch.zeros(state_dim, dtype=torch.float64))  # summed squared deviations
@@ -105,7 +107,7 @@ class PrivilegedValueNetwork(nn.Module):
             return privileged_state
         std = (self.sum_sq / (self.count - 1)).sqrt().clamp_min(1e-3)
         standard = (privileged_state - self.mean.to(privileged_state.dtype)) / std.to(privileged_state.dtype)
-        return standard.clamp(-self.CLIP, self.CLIP)
+        return standard.clamp(-self.clip, self.clip)
 
     def forward(self, privileged_state: torch.Tensor) -> torch.Tensor:
         return self.mlp(self.normalized(privileged_state))
