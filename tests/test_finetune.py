@@ -745,6 +745,36 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert clip and all(0.0 <= float(line.split(",")[1]) <= 1.0 for line in clip)
 
 
+def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the_buffer(
+        toy_pretrain_run, model, pick_demos, tmp_path):
+    """``value.warmup_env_steps=20`` of a 30-step budget (three iterations of 10): the critic learns on every
+    iteration's rollouts, the policy only on the last one's, and the online buffer holds only that iteration's
+    decisions (the first two were scored by the cold critic)."""
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    run_dir = tmp_path / "warmup"
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
+                      "eval.episodes=0", "value.input=privileged_state", "loss.rwr.weighting=signed",
+                      "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "value.warmup_env_steps=20")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "the critic alone learns for the first 20 env steps" in proc.stdout
+    assert "done: 30 env steps, 2 updates" in proc.stdout  # two updates per iteration, the last iteration only
+    scalars = run_dir / "logs" / "scalars" / "train"
+    assert len((scalars / "value_loss.csv").read_text().split()) == 3
+    assert [line.split(",")[0] for line in (scalars / "critic_warmup.csv").read_text().split()] == ["10", "20"]
+    # the policy after the warm-up iterations is the pretrained one, bit for bit; the critic has moved
+    warm = MMaDAModel.load(run_dir / "checkpoints" / "step_00000002" / "model").denoiser.state_dict()
+    assert all(torch.equal(tensor, warm[name]) for name, tensor in model.denoiser.state_dict().items())
+    values = [load_checkpoint(run_dir / "checkpoints" / f"step_0000000{i}").trainer_state["extra"]["value"]
+              for i in (1, 2)]
+    assert any(not torch.equal(values[0][k], values[1][k]) for k in values[0] if k.endswith("weight"))
+    final = MMaDAModel.load(run_dir / "checkpoints" / "step_00000003" / "model").denoiser.state_dict()
+    assert any(not torch.equal(tensor, final[name]) for name, tensor in model.denoiser.state_dict().items())
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))
+    buffer.loads(run_dir / "online_buffer")
+    assert len(buffer) == 2  # collector.decisions_per_batch of the one iteration after the warm-up
+
+
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
@@ -775,6 +805,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["value.input=pixels"], "use observation or privileged_state"),
     (["value.input=privileged_state", "advantage.estimator=return"], "uses no critic"),
     (["value.input=privileged_state", "value.pretrain_steps=5"], "hold no privileged state"),
+    (["value.warmup_env_steps=-1"], "value.warmup_env_steps must be >= 0"),
+    (["value.warmup_env_steps=10", "advantage.estimator=return"], "use advantage.estimator=gae or value.warmup_env_steps=0"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -72,6 +72,8 @@ _GAE_NOISE_VDEMO = [*_GAE_NOISE_ABSORBING, "value.pretrain_steps=2000"]
 _GAE_NOISE_PRIVILEGED = [*_GAE_NOISE_ABSORBING, "value.input=privileged_state"]
 #: the same critic reading the raw state, unscaled (the first run of it; benchmarks/critic_fit.py shows why it changed)
 _GAE_NOISE_PRIVILEGED_RAW = [*_GAE_NOISE_PRIVILEGED, "value.normalize_privileged=false"]
+#: the standardised privileged critic learning alone on the first 10k env steps' rollouts (DPPO's critic warm-up)
+_GAE_NOISE_PRIVILEGED_WARMUP = [*_GAE_NOISE_PRIVILEGED, "value.warmup_env_steps=10000"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -121,6 +123,11 @@ METHODS = {
                                        "greedy policy's noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, "
                                        "goals weighted too; the policy reads only its pixels and proprio)",
                                        "rgb+proprio", _GAE_NOISE_PRIVILEGED_RAW, True),
+    "mmada_gae_noise_privileged_warmup": ("MMaDA-VLA + per-chunk GAE advantages from a critic reading the simulator's "
+                                          "standardised privileged state, which learns alone for the first 10k env "
+                                          "steps (the policy waits; those rollouts are not learned from), then as "
+                                          "mmada_gae_noise_privileged (ours)", "rgb+proprio",
+                                          _GAE_NOISE_PRIVILEGED_WARMUP, True),
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          [*_FINETUNE, "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),

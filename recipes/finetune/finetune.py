@@ -37,7 +37,10 @@ actions (:class:`~mmada_rl.policy.ExecutionNoise`); the online rows hold the exe
 with binary weights of episode success the successful noisy rollouts are imitated as demonstrations are.
 
 With ``value.pretrain_steps > 0`` (GAE) the value network is first regressed on the demonstrations'
-discounted returns, so that the first advantages come from a critic that has seen the task.
+discounted returns, so that the first advantages come from a critic that has seen the task. With
+``value.warmup_env_steps=N > 0`` (GAE; DPPO's critic warm-up) the critic alone learns on the rollouts of the
+first ``N`` online env steps: the policy is not updated, and those rollouts, whose advantages came from the
+cold critic, never enter the online buffer (which otherwise keeps them, with their advantages, for the run).
 
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
@@ -182,11 +185,13 @@ def main(cfg: DictConfig) -> None:
     updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
                     f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}"
                     + (f", each with {n_demo} demo windows (demo_coef {cfg.loss.ppo.demo_coef})" if demo_anchor is not None else ""))
+    warmup = int(cfg.value.get("warmup_env_steps") or 0)
     noise = action_noise(cfg)
     exploring = (f"greedy chunks + N(0, {noise:g}^2) on the arm's actions" if noise > 0 else
                  f"tokens sampled at temperature {cfg.collector.temperature}")
     print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; exploration: {exploring}; "
-          f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps")
+          f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps"
+          + (f"; the critic alone learns for the first {warmup} env steps" if warmup else ""))
 
     penv = make_policy_env_for(cfg, model, noise_generator)
     collector = make_collector(cfg, penv)
@@ -208,6 +213,7 @@ def main(cfg: DictConfig) -> None:
             model.sampler = eval_sampler  # evaluation and checkpoints keep the model's own sampler
             steps = int(executed_steps(batch).sum())
             env_steps += steps
+            warming = env_steps <= warmup  # value.warmup_env_steps: the critic learns, the policy waits
             pbar.update(steps)
             collect_s = time.perf_counter() - t0
             metrics = {"train/chunk_reward": float(batch.get(("next", "reward")).mean()), "time/collect_s": collect_s}
@@ -231,7 +237,9 @@ def main(cfg: DictConfig) -> None:
                     metrics["train/value_loss"] = update_value(cfg, value_op, value_optim, rows)
 
             t1, stepped = time.perf_counter(), []  # each gradient step's losses and grad norm, averaged for the log
-            if cfg.algo == "rwr":
+            if warming:
+                metrics["train/critic_warmup"] = 1.0
+            elif cfg.algo == "rwr":
                 if rows is not None:
                     online.extend(rows)
                 model.train()

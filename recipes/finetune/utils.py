@@ -86,6 +86,12 @@ def check_config(cfg: DictConfig) -> None:
     if value_steps > 0 and cfg.advantage.estimator != "gae":
         raise ValueError(f"value.pretrain_steps > 0 fits GAE's critic, but advantage.estimator={cfg.advantage.estimator} "
                          "uses none: use advantage.estimator=gae or value.pretrain_steps=0.")
+    warmup = int(cfg.value.get("warmup_env_steps") or 0)
+    if warmup < 0:
+        raise ValueError(f"value.warmup_env_steps must be >= 0, got {warmup}.")
+    if warmup > 0 and cfg.advantage.estimator != "gae":
+        raise ValueError(f"value.warmup_env_steps > 0 trains GAE's critic alone first, but advantage.estimator="
+                         f"{cfg.advantage.estimator} uses none: use advantage.estimator=gae or value.warmup_env_steps=0.")
     if value_input(cfg) not in VALUE_INPUTS:
         raise ValueError(f"value.input={value_input(cfg)!r}; use observation or privileged_state.")
     if privileged_critic(cfg) and cfg.advantage.estimator != "gae":
