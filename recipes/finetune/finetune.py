@@ -67,6 +67,7 @@ from utils import (
     absorb_success,
     action_noise,
     check_config,
+    critic_warmup_steps,
     decision_rows,
     executed_steps,
     exploration_sampler,
@@ -185,7 +186,7 @@ def main(cfg: DictConfig) -> None:
     updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
                     f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}"
                     + (f", each with {n_demo} demo windows (demo_coef {cfg.loss.ppo.demo_coef})" if demo_anchor is not None else ""))
-    warmup = int(cfg.value.get("warmup_env_steps") or 0)
+    warmup = critic_warmup_steps(cfg)
     noise = action_noise(cfg)
     exploring = (f"greedy chunks + N(0, {noise:g}^2) on the arm's actions" if noise > 0 else
                  f"tokens sampled at temperature {cfg.collector.temperature}")

@@ -86,7 +86,7 @@ def check_config(cfg: DictConfig) -> None:
     if value_steps > 0 and cfg.advantage.estimator != "gae":
         raise ValueError(f"value.pretrain_steps > 0 fits GAE's critic, but advantage.estimator={cfg.advantage.estimator} "
                          "uses none: use advantage.estimator=gae or value.pretrain_steps=0.")
-    warmup = int(cfg.value.get("warmup_env_steps") or 0)
+    warmup = critic_warmup_steps(cfg)
     if warmup < 0:
         raise ValueError(f"value.warmup_env_steps must be >= 0, got {warmup}.")
     if warmup > 0 and cfg.advantage.estimator != "gae":
@@ -118,6 +118,11 @@ def load_pretrained(cfg: DictConfig) -> MMaDAModel:
 def action_noise(cfg: DictConfig) -> float:
     """``collector.action_noise`` (0 when absent): the std of the Gaussian exploration around greedy chunks."""
     return float(cfg.collector.get("action_noise") or 0.0)
+
+
+def critic_warmup_steps(cfg: DictConfig) -> int:
+    """``value.warmup_env_steps`` (0 when absent): the online env steps on which GAE's critic learns alone."""
+    return int(cfg.value.get("warmup_env_steps") or 0)
 
 
 def exploration_sampler(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionSampler:
