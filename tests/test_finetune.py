@@ -745,13 +745,20 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert clip and all(0.0 <= float(line.split(",")[1]) <= 1.0 for line in clip)
 
 
+def saved_online_buffer(run_dir: Path):
+    """The online buffer a fine-tuning run saved in ``run_dir``, loaded as the recipe resumes it."""
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))  # replay_buffer.capacity of toy.yaml
+    buffer.loads(run_dir / "online_buffer")
+    return buffer
+
+
 def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the_buffer(
         toy_pretrain_run, model, pick_demos, tmp_path):
     """``value.warmup_env_steps=20`` of a 30-step budget (three iterations of 10): the critic learns on every
     iteration's rollouts, the policy only on the last one's, and the online buffer holds only that iteration's
     decisions (the first two were scored by the cold critic)."""
-    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-
     run_dir = tmp_path / "warmup"
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
                       "eval.episodes=0", "value.input=privileged_state", "loss.rwr.weighting=signed",
@@ -770,22 +777,17 @@ def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the
     assert any(not torch.equal(values[0][k], values[1][k]) for k in values[0] if k.endswith("weight"))
     final = MMaDAModel.load(run_dir / "checkpoints" / "step_00000003" / "model").denoiser.state_dict()
     assert any(not torch.equal(tensor, final[name]) for name, tensor in model.denoiser.state_dict().items())
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))
-    buffer.loads(run_dir / "online_buffer")
-    assert len(buffer) == 2  # collector.decisions_per_batch of the one iteration after the warm-up
+    assert len(saved_online_buffer(run_dir)) == 2  # collector.decisions_per_batch of the one iteration after the warm-up
 
 
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):
-    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-
     run_dir = tmp_path / "failing"
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
                       "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2")
     assert proc.returncode != 0
     assert "collection failed after" in proc.stderr and "injected env failure" in proc.stderr
     assert "checkpoint.resume=true" in proc.stderr
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))  # replay_buffer.capacity of toy.yaml
-    buffer.loads(run_dir / "online_buffer")
+    buffer = saved_online_buffer(run_dir)
     assert len(buffer) > 0 and SEQUENCE_KEY in buffer[:1].keys(True, True)
 
 
