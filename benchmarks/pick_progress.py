@@ -15,6 +15,15 @@ axis, so the demonstrations tilt by a few degrees at most; ``--demo-tilt DIR``
 measures theirs from the TCP pose in their recorded states). Works with any
 policy ``mmada-rl eval`` loads (MMaDA-VLA, BC, Diffusion Policy; RGB or state).
 
+Each failed episode is sorted into one failure mode (:func:`failure_mode`, the
+first that applies): ``never grasped``; ``dropped`` (the gripper lost the cube
+at least once after the first grasp: a grasp that slipped as the arm lifted,
+or fingers opened on it); ``stalled`` (held, but the cube never came
+:data:`STALL_CM` nearer the goal than it was at the grasp: the arm stays
+still, or nearly, with the cube in its fingers); ``near miss`` (within
+:data:`NEAR_CM` of the goal at the closest); ``short`` (carried toward the goal,
+never within :data:`NEAR_CM`).
+
 With ``--demos DIR`` it also checks the open-loop fit where it matters: on the
 demonstrations' own states after the grasp, the first predicted action's
 vertical component against the demonstrated one, near the goal (cube within
@@ -60,19 +69,44 @@ def probe(task) -> tuple[bool, list[float], torch.Tensor]:
     return bool(task.agent.is_grasping(task.cube).any()), [round(float(v), 2) for v in offset], quaternion
 
 
+#: A cube that never comes this much nearer the goal than it was at the grasp has "stalled" (cm).
+STALL_CM = 2.0
+#: "Near the goal": the near-miss radius of :func:`failure_mode`, and the open-loop fit's split (cm).
+NEAR_CM = 5.0
+FAILURE_MODES = ("never grasped", "dropped", "stalled", "near miss", "short")
+
+
+def failure_mode(episode: dict) -> str | None:
+    """Why a probed episode failed, one of :data:`FAILURE_MODES` (the first that applies); None if it succeeded."""
+    if episode["success"]:
+        return None
+    grasped_at = episode["grasped_at_decision"]
+    if grasped_at is None:
+        return "never grasped"
+    if episode["grasp_lost"]:
+        return "dropped"
+    if episode["closest_cm"] > episode["distance_cm"][grasped_at] - STALL_CM:
+        return "stalled"
+    return "near miss" if episode["closest_cm"] < NEAR_CM else "short"
+
+
 def rollout(penv, seed: int, max_decisions: int) -> dict:
     probes, success = probed_episode(penv, seed, max_decisions, probe)
-    grasped_at = next((i for i, (held, _, _) in enumerate(probes) if held), None)
+    held = [h for h, _, _ in probes]
+    grasped_at = next((i for i, h in enumerate(held) if h), None)
     distance = [float(torch.tensor(o).norm()) for _, o, _ in probes]
     after = range(grasped_at, len(probes)) if grasped_at is not None else range(0)
     orientation = torch.stack([q for _, _, q in probes])  # (decisions, 4)
-    return {
+    episode = {
         "seed": seed, "success": success, "grasped_at_decision": grasped_at,
+        "grasp_lost": sum(a and not b for a, b in zip(held, held[1:])),  # held -> not held, decision to decision
         "closest_cm": round(min(distance[i] for i in after), 2) if after else None,
         "max_above_goal_cm": round(max(probes[i][1][2] for i in after), 2) if after else None,
         "final_cm": round(distance[-1], 2), "distance_cm": [round(d, 2) for d in distance],
         "max_tilt_deg": round(float(tilt_deg(orientation[:1], orientation).max()), 2),
     }
+    episode["failure_mode"] = failure_mode(episode)
+    return episode
 
 
 def demo_tilt(demos: Path) -> dict:
@@ -84,9 +118,6 @@ def demo_tilt(demos: Path) -> dict:
     tilts = [float(tilt_deg(q[:1], q).max()) for q in (e.get(STATE_KEY)[:, TCP_QUATERNION] for e in buffer.episodes())]
     return {"demos": str(demos), "episodes": len(tilts), "median_max_tilt_deg": round(statistics.median(tilts), 2),
             "max_tilt_deg": round(max(tilts), 2)}
-
-
-NEAR_CM = 5.0  # "near the goal" for the open-loop fit
 
 
 def demo_fit(actor, demos: Path) -> dict:
@@ -132,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = {"episodes": len(episodes), "successes": sum(e["success"] for e in episodes), "grasped": len(held),
                "median_closest_cm": median("closest_cm"), "median_max_above_goal_cm": median("max_above_goal_cm"),
                "median_final_cm": median("final_cm"),
-               "median_max_tilt_deg": statistics.median(e["max_tilt_deg"] for e in episodes)}
+               "median_max_tilt_deg": statistics.median(e["max_tilt_deg"] for e in episodes),
+               "failures": {mode: sum(e["failure_mode"] == mode for e in episodes) for mode in FAILURE_MODES}}
     payload = {"checkpoint": str(args.checkpoint), "task": TASK, "action_readout": args.action_readout,
                "demo_seeds": args.demo_seeds, "summary": summary, "episodes": episodes}
     readout = f" ({args.action_readout} read-out)" if args.action_readout else ""
@@ -156,9 +188,13 @@ def main(argv: list[str] | None = None) -> int:
          "median final cube–goal (cm)", "median max tilt (degrees, all episodes)"],
         [[summary["episodes"], summary["successes"], summary["grasped"], fmt(summary["median_closest_cm"]),
           fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"]), fmt(summary["median_max_tilt_deg"])]])
+    modes = markdown_table(list(FAILURE_MODES), [[summary["failures"][m] for m in FAILURE_MODES]])
     markdown = (f"# How far the policy gets on PickCube-v1: `{args.checkpoint}`\n\n"
                 f"{seeds}, greedy decoding{readout}; distances after the first grasp, "
-                f"medians over the episodes that grasped.\n\n{table}{fit_table}\n")
+                f"medians over the episodes that grasped.\n\n{table}\n\n"
+                f"The failures by mode (dropped: the grasp lost after it was made; stalled: held, the cube never "
+                f"{STALL_CM:g} cm nearer the goal than at the grasp; near miss: within {NEAR_CM:g} cm at the "
+                f"closest; short: neither):\n\n{modes}{fit_table}\n")
     write_results(args.name, payload, markdown, args.out)
     plot(episodes, args.out / f"{args.name}.png", str(args.checkpoint))
     print(markdown)

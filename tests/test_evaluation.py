@@ -355,6 +355,22 @@ def test_tilt_is_the_angle_between_pointing_axes_whatever_the_turn_about_them():
     torch.testing.assert_close(tilt(down, tilted), torch.rad2deg(torch.tensor(0.6)), rtol=1e-4, atol=1e-3)
 
 
+def test_pick_progress_sorts_each_failure_into_one_mode():
+    mode = load_benchmark("pick_progress").failure_mode
+
+    def episode(success=False, grasped_at=1, lost=0, distance=(20.0, 20.0, 20.0)):
+        after = distance[grasped_at:] if grasped_at is not None else ()
+        return {"success": success, "grasped_at_decision": grasped_at, "grasp_lost": lost,
+                "closest_cm": min(after) if after else None, "distance_cm": list(distance)}
+
+    assert mode(episode(success=True, distance=(20.0, 10.0, 2.0))) is None
+    assert mode(episode(grasped_at=None)) == "never grasped"
+    assert mode(episode(lost=1, distance=(20.0, 20.0, 4.0))) == "dropped"  # a lost grasp, however near it came
+    assert mode(episode(distance=(20.0, 20.0, 18.5))) == "stalled"  # 1.5 cm nearer than at the grasp: under 2
+    assert mode(episode(distance=(20.0, 20.0, 4.0))) == "near miss"
+    assert mode(episode(distance=(20.0, 20.0, 9.0))) == "short"
+
+
 def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pick_demos, tmp_path):
     bench = load_benchmark("pick_progress")
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
@@ -370,7 +386,12 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pic
         assert e["final_cm"] == e["distance_cm"][-1] and 0 < e["final_cm"] < 100
         assert (e["closest_cm"] is None) == (e["grasped_at_decision"] is None)  # distances after a grasp only
     assert result["summary"]["episodes"] == 2 and result["summary"]["grasped"] <= 2
+    failures = result["summary"]["failures"]
+    assert sum(failures.values()) == 2 - result["summary"]["successes"]
+    assert failures["never grasped"] == 2 - result["summary"]["grasped"]
+    assert all(e["failure_mode"] == bench.failure_mode(e) for e in result["episodes"])
     assert "median max height above goal (cm)" in (tmp_path / "pick_progress.md").read_text()
+    assert "| never grasped | dropped | stalled | near miss | short |" in (tmp_path / "pick_progress.md").read_text()
     assert (tmp_path / "pick_progress.png").stat().st_size > 0
     assert result["action_readout"] is None  # the policy's own
     with pytest.raises(ValueError, match="codes have no mean"):  # the toy policy's actions are VQ codes
