@@ -17,8 +17,8 @@ policy ``mmada-rl eval`` loads (MMaDA-VLA, BC, Diffusion Policy; RGB or state).
 
 Each failed episode is sorted into one failure mode (:func:`failure_mode`, the
 first that applies): ``never grasped``; ``dropped`` (the gripper lost the cube
-at least once after the first grasp: a grasp that slipped as the arm lifted,
-or fingers opened on it); ``stalled`` (held, but the cube never came
+at least once after the first grasp, wherever the cube was then: a grasp
+that slipped, or fingers that opened on it); ``stalled`` (held, but the cube never came
 :data:`STALL_CM` nearer the goal than it was at the grasp: the arm stays
 still, or nearly, with the cube in its fingers); ``near miss`` (within
 :data:`NEAR_CM` of the goal at the closest); ``short`` (carried toward the goal,
