@@ -746,10 +746,9 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
 
 
 def saved_online_buffer(run_dir: Path):
-    """The online buffer a fine-tuning run saved in ``run_dir``, loaded as the recipe resumes it."""
-    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(2000))  # replay_buffer.capacity of toy.yaml
+    """The online buffer a fine-tuning run saved in ``run_dir``, loaded as the recipe resumes it: the recipe's
+    ``make_online_buffer`` on the config of the run's newest checkpoint."""
+    buffer = recipe_utils().make_online_buffer(OmegaConf.create(load_checkpoint(run_dir).config))
     buffer.loads(run_dir / "online_buffer")
     return buffer
 
