@@ -410,6 +410,41 @@ def test_action_label_sigma_scores_action_tokens_against_gaussian_targets():
         MaskedDiffusionLoss(tiny(layout), action_label_sigma=-1.0)
 
 
+def test_action_mean_weight_adds_the_l1_error_of_the_expected_bin():
+    layout = make_layout()
+    plain = MaskedDiffusionLoss(tiny(layout))
+    mean = MaskedDiffusionLoss(tiny(layout), action_mean_weight=3.0)
+    assert "loss_action_mean" in mean.out_keys and "loss_action_mean" not in plain.out_keys
+    start, stop = layout.vocab.range_of("action")
+    n = stop - start
+    # half the mass one bin below the clean id 8, half three above: the expected bin is 9, one bin (2 / n) off
+    logits = torch.full((2, layout.vocab.size), float("-inf"))
+    logits[:, start:stop] = -30.0
+    logits[0, start + 7] = logits[0, start + 11] = 0.0
+    logits[1, start + 8] = 0.0  # all the mass on the clean bin: no error
+    error = mean.action_mean_error(logits, torch.tensor([start + 8, start + 8]))
+    torch.testing.assert_close(error, torch.tensor([2.0 / n, 0.0]), atol=1e-6, rtol=0)
+    # forward: the weight times the mean error over the scored action tokens; the cross-entropies unchanged
+    td = plain.corrupt(TensorDict({SEQUENCE_KEY: make_batch(layout, batch=4)}, batch_size=[4]),
+                       generator=torch.Generator().manual_seed(0))
+    out, base, s = mean(td), plain(td), mean.score(td)
+    is_action = s.segment == layout.segment_ids[layout.action_positions[0]]
+    expected = 3.0 * mean.action_mean_error(s.logits[is_action], s.targets[is_action]).mean()
+    torch.testing.assert_close(out["loss_action_mean"], expected)
+    torch.testing.assert_close(out["loss_action"], base["loss_action"])
+    # its gradient moves the expected bin toward the clean one
+    out["loss_action_mean"].backward()
+    with torch.no_grad():
+        for p in mean.parameters():
+            if p.grad is not None:  # the parameters the action logits depend on
+                p -= 0.5 * p.grad
+        after = mean.score(td)
+    before = expected / 3.0  # the unweighted mean error
+    assert mean.action_mean_error(after.logits[is_action], after.targets[is_action]).mean() < before
+    with pytest.raises(ValueError, match="action_mean_weight must be >= 0"):
+        MaskedDiffusionLoss(tiny(layout), action_mean_weight=-1.0)
+
+
 def test_only_masked_positions_are_scored():
     layout = make_layout()
     loss_fn = MaskedDiffusionLoss(tiny(layout))

@@ -125,6 +125,8 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
         (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
         (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
+        (["loss.action_mean_weight=1"], "loss.action_mean_weight=1.0 scores the expected bin of each action token, "
+                                        "so it needs ordered bin tokens"),
         (["loss.full_mask_prob=1.5"], "loss.full_mask_prob must lie in [0, 1], got 1.5"),
         (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
         (["model.action_readout=mean"], "VQActionTokenizer codes have no mean"),
@@ -144,16 +146,18 @@ def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, ov
 
 def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
     """The VQ-vs-bins ablation: ``tokenizers.action_type=bins`` with the bins' own options (and their Gaussian
-    targets, ``loss.action_label_sigma``, and the mean read-out of greedy chunks, ``model.action_readout``)."""
+    targets, ``loss.action_label_sigma``, the L1 error of their expected bin, ``loss.action_mean_weight``, and the
+    mean read-out of greedy chunks, ``model.action_readout``)."""
     run_dir = tmp_path / "bins"
     proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=2",
                       "eval.episodes=0", "tokenizers.action_type=bins", "tokenizers.action.bins.num_bins=32",
-                      "loss.action_label_sigma=0.75", "model.action_readout=mean")
+                      "loss.action_label_sigma=0.75", "loss.action_mean_weight=1.0", "model.action_readout=mean")
     assert proc.returncode == 0, proc.stderr[-3000:]
     config = json.loads((run_dir / "tokenizers" / "action" / "config.json").read_text())
     assert config["type"] == "UniformBinActionTokenizer" and config["config"]["num_bins"] == 32
     saved = json.loads((latest_checkpoint(run_dir) / "model" / "model.json").read_text())
     assert saved["config"]["action_readout"] == "mean"  # the saved policy reads its greedy chunks out by their mean
+    assert (run_dir / "logs" / "scalars" / "train" / "loss_action_mean.csv").exists()  # trained and logged
 
 
 def test_state_differences_are_fitted_and_read_by_config_alone(pick_demos, tmp_path):

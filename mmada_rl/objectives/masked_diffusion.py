@@ -103,9 +103,18 @@ class MaskedDiffusionLoss(LossModule):
             action ids, one id per bin (:class:`~mmada_rl.tokenizers.UniformBinActionTokenizer`):
             a near miss then costs less than a far one. 0 (default): plain
             cross-entropy.
+        action_mean_weight: > 0 adds ``loss_action_mean``, this weight times the
+            L1 error between each scored action token's expected bin centre (its
+            predicted distribution's mean over the action range, the value the mean
+            read-out executes) and the clean bin's centre, in the bins' normalised
+            units ([-1, 1] over the range), averaged over the scored action tokens:
+            the ordered loss BC's regression head trains, on the read-out the policy
+            acts with. Only for ordered action ids, one id per bin, as
+            ``action_label_sigma``. 0 (default): off.
 
     Returns (from ``forward``) a TensorDict with ``loss_action``, ``loss_goal``
-    (and ``loss_condition`` when ``condition_mask_prob > 0``), plus detached
+    (``loss_condition`` when the forward process corrupts conditioning tokens,
+    ``loss_action_mean`` when ``action_mean_weight > 0``), plus detached
     diagnostics ``action_accuracy``, ``goal_accuracy`` (with goal tokens),
     ``noise_level`` (mean ρ) and ``num_scored`` (scored positions).
 
@@ -167,9 +176,11 @@ class MaskedDiffusionLoss(LossModule):
         corruptions_per_sample: int = 1,
         cache_condition: bool = True,
         action_label_sigma: float = 0.0,
+        action_mean_weight: float = 0.0,
     ) -> None:
         for name, value in (("action_weight", action_weight), ("goal_weight", goal_weight),
-                            ("condition_weight", condition_weight), ("action_label_sigma", action_label_sigma)):
+                            ("condition_weight", condition_weight), ("action_label_sigma", action_label_sigma),
+                            ("action_mean_weight", action_mean_weight)):
             if value < 0:
                 raise ValueError(f"{name} must be >= 0, got {value!r}.")
         if int(corruptions_per_sample) != corruptions_per_sample or corruptions_per_sample < 1:
@@ -193,6 +204,11 @@ class MaskedDiffusionLoss(LossModule):
         self.corruptions_per_sample = int(corruptions_per_sample)
         self.cache_condition = bool(cache_condition)
         self.action_range = self.layout.vocab.range_of("action")
+        self.action_mean_weight = float(action_mean_weight)
+        num_bins = self.action_range[1] - self.action_range[0]
+        #: each action id's bin centre in the bins' normalised units, ``[-1, 1]`` over the range (ordered ids)
+        self.register_buffer("action_bin_centres", torch.linspace(-1 + 1 / num_bins, 1 - 1 / num_bins, num_bins),
+                             persistent=False)
         #: row ``c``: the soft target of clean action id ``c`` over the action range (None: one-hot); a buffer,
         #: so it moves with the loss module to the device instead of at every step
         self.register_buffer("action_soft_targets", (
@@ -233,6 +249,8 @@ class MaskedDiffusionLoss(LossModule):
         keys = ["loss_action", "loss_goal"]
         if self.corrupts_condition:
             keys.append("loss_condition")
+        if self.action_mean_weight > 0:
+            keys.append("loss_action_mean")
         keys += ["action_accuracy"] + (["goal_accuracy"] if self.layout.has_goal else [])
         return keys + ["noise_level", "num_scored"]
 
@@ -339,6 +357,13 @@ class MaskedDiffusionLoss(LossModule):
         log_p = F.log_softmax(logits[is_action, start:stop], dim=-1)  # the restricted logits are -inf elsewhere
         return ce.masked_scatter(is_action, -(soft * log_p).sum(-1))
 
+    def action_mean_error(self, logits: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        """``(Ma,)`` L1 error of the expected bin centre of action logits ``(Ma, V)`` against the clean ids'
+        centres ``(Ma,)``, in the bins' normalised units (what ``loss_action_mean`` averages)."""
+        start, stop = self.action_range
+        probs = logits[:, start:stop].softmax(-1)  # the restricted logits are -inf elsewhere
+        return (probs @ self.action_bin_centres - self.action_bin_centres[targets - start]).abs()
+
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         layout = self.layout
         s = self.score(tensordict)
@@ -355,6 +380,10 @@ class MaskedDiffusionLoss(LossModule):
             out[f"loss_{name}"] = weights[name] * torch.where(select, ce, torch.zeros_like(ce)).sum() / count
             if name != "condition" and (name != "goal" or layout.has_goal):
                 out[f"{name}_accuracy"] = (correct * select).sum().detach() / count
+        if self.action_mean_weight > 0:
+            select = groups["action"]
+            error = self.action_mean_error(s.logits[select], s.targets[select])
+            out["loss_action_mean"] = self.action_mean_weight * error.sum() / select.sum().clamp_min(1)
         out["noise_level"] = s.noise_level.float().mean().detach()
         out["num_scored"] = s.num_scored.detach().float()
         return TensorDict(out, batch_size=[])

@@ -183,14 +183,18 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     if full > 0:
         schedule = FullMaskMixture(make_noise_schedule(schedule), full)
     sigma = float(l.action_label_sigma)
-    if sigma > 0 and not isinstance(model.action_tokenizer, UniformBinActionTokenizer):
-        raise ValueError(f"loss.action_label_sigma={sigma} smooths the targets over neighbouring bins, so it needs "
-                         f"ordered bin tokens (tokenizers.action_type=bins), not a {type(model.action_tokenizer).__name__}.")
+    mean_weight = float(l.get("action_mean_weight", 0.0))
+    for name, value, what in (("action_label_sigma", sigma, "smooths the targets over neighbouring bins"),
+                              ("action_mean_weight", mean_weight, "scores the expected bin of each action token")):
+        if value > 0 and not isinstance(model.action_tokenizer, UniformBinActionTokenizer):
+            raise ValueError(f"loss.{name}={value} {what}, so it needs ordered bin tokens "
+                             f"(tokenizers.action_type=bins), not a {type(model.action_tokenizer).__name__}.")
     return MaskedDiffusionLoss(
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
         proprio_drop_prob=float(l.proprio_drop_prob), proprio_drop_index=proprio_drop_index(cfg, model),
         corruptions_per_sample=int(l.corruptions_per_sample), action_label_sigma=sigma,
+        action_mean_weight=mean_weight,
     )
 
 
