@@ -312,6 +312,22 @@ def test_demo_rows_take_demo_weight_and_online_rows_need_an_advantage(model, toy
     torch.testing.assert_close(std_fn.sample_weights(online, 3, torch.device("cpu")), torch.tensor([-1.0, 0.0, 1.0]))
 
 
+def test_action_mean_weight_scores_the_demonstration_rows_alone(model, toy_pretrain_run):
+    """``action_mean_weight``: the L1 error of the expected action bins, on the demonstrations' rows only and
+    unweighted by advantages (as pretraining scored them); no such term without demonstrations."""
+    loss_fn = RewardWeightedDiffusionLoss(model.denoiser, weighting="signed", action_mean_weight=2.0)
+    assert "loss_action_mean" in loss_fn.out_keys
+    assert "loss_action_mean" not in RewardWeightedDiffusionLoss(model.denoiser).out_keys
+    td = _two_chunks(model, toy_pretrain_run).set(IS_DEMO_KEY, torch.tensor([True, False]))
+    out, s = loss_fn(td), loss_fn.score(td)
+    demo_actions = (s.segment == ACTION_SEGMENT) & (s.sample == 0)
+    expected = 2.0 * loss_fn.action_mean_error(s.logits[demo_actions], s.targets[demo_actions]).mean()
+    assert expected > 0
+    torch.testing.assert_close(out["loss_action_mean"], expected)
+    online = loss_fn(td.set(IS_DEMO_KEY, torch.tensor([False, False])))
+    assert float(online["loss_action_mean"].detach()) == 0.0
+
+
 def test_binary_weights_keep_only_positive_advantages():
     from mmada_rl.objectives.reward_weighted import advantage_weights
 
@@ -527,6 +543,47 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
     sampler = utils.make_demo_windows(cfg, demos, model).sampler
     torch.testing.assert_close(sampler.no_start, expected)
     assert utils.make_demo_windows(bare, demos, model).sampler.no_start is None
+
+
+def test_fine_tuning_keeps_the_pretraining_regularisers(toy_pretrain_run, model, pick_demos, tmp_path):
+    """``loss.proprio_drop_prob``, ``loss.proprio_drop_keep_dims``, ``loss.action_mean_weight`` and
+    ``demos.random_shift`` null: the pretraining run's state dropout, expected-bin loss and image shift; a value given
+    overrides them; a bare saved model has none."""
+    from mmada_rl.data import DemoBuffer, RandomShift
+
+    utils = recipe_utils()
+    checkpoint = tmp_path / "checkpoint"  # a pretraining checkpoint whose run dropped the state and shifted the images
+    checkpoint.mkdir()
+    (checkpoint / "model").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
+    (checkpoint / "config.json").write_text(json.dumps({
+        "loss": {"proprio_drop_prob": 0.3, "proprio_drop_keep_dims": [26, 27, 28], "action_mean_weight": 0.0},
+        "replay_buffer": {"random_shift": 4}}))
+    cfg = OmegaConf.merge(OmegaConf.load(RECIPE.parent / "config" / "toy.yaml"), {"pretrained": str(checkpoint)})
+    keep = model.proprio_drop_index([26, 27, 28])
+    assert keep is not None and len(keep) == len(model.proprio_index) - 3
+    options = utils.pretraining_loss_options(cfg, model)
+    assert options == {"proprio_drop_prob": 0.3, "proprio_drop_index": keep, "action_mean_weight": 0.0}
+    loss = utils.make_loss(cfg, model)
+    assert loss.proprio_drop_prob == 0.3 and loss.proprio_drop_index.tolist() == keep
+    assert utils.demo_random_shift(cfg) == 4
+    demos = DemoBuffer.open(pick_demos)
+    assert any(isinstance(t, RandomShift) for t in utils.make_demo_windows(cfg, demos, model).transform)
+    # a value given overrides the pretraining run's
+    off = OmegaConf.merge(cfg, {"loss": {"proprio_drop_prob": 0.0}, "demos": {"random_shift": 0}})
+    assert utils.pretraining_loss_options(off, model)["proprio_drop_prob"] == 0.0
+    assert not any(isinstance(t, RandomShift) for t in utils.make_demo_windows(off, demos, model).transform)
+    with pytest.raises(ValueError, match="needs ordered bin tokens, not a VQActionTokenizer"):
+        utils.pretraining_loss_options(OmegaConf.merge(cfg, {"loss": {"action_mean_weight": 1.0}}), model)
+    every = model.proprio_index.tolist()
+    with pytest.raises(ValueError, match=r"loss.proprio_drop_keep_dims=\[.*\] keeps every state dimension"):
+        utils.pretraining_loss_options(OmegaConf.merge(cfg, {"loss": {"proprio_drop_keep_dims": every}}), model)
+    with pytest.raises(ValueError, match=r"state dimensions \[99\] are not in the sequence"):
+        utils.pretraining_loss_options(OmegaConf.merge(cfg, {"loss": {"proprio_drop_keep_dims": [99]}}), model)
+    # the toy pretraining run itself used neither
+    plain = OmegaConf.merge(cfg, {"pretrained": str(toy_pretrain_run)})
+    assert utils.pretraining_loss_options(plain, model) == {"proprio_drop_prob": 0.0, "proprio_drop_index": None,
+                                                            "action_mean_weight": 0.0}
+    assert utils.demo_random_shift(plain) == 0
 
 
 def seeing_model(model: MMaDAModel) -> MMaDAModel:

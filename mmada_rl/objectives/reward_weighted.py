@@ -88,10 +88,13 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         kl_coef: weight of ``loss_kl`` (needs ``reference``).
         weight_goal: weight each row's goal-image cross-entropy like its action
             tokens (default ``False``: the plain, unweighted denoising loss).
-        **kwargs: :class:`MaskedDiffusionLoss` options (schedule, kernel, goal_weight, ...).
+        **kwargs: :class:`MaskedDiffusionLoss` options (schedule, kernel, goal_weight, the state
+            dropout of ``proprio_drop_prob`` / ``proprio_drop_index``, which here only masks the
+            inputs, ...). Its ``action_mean_weight`` scores the demonstrations' rows alone: the
+            L1 error of their expected bins, unweighted, as pretraining scored it.
 
     Returns ``loss_action`` (weighted), ``loss_goal`` (unweighted unless ``weight_goal``), ``loss_kl``
-    (when ``kl_coef > 0``) and diagnostics (``weight_mean``, ``weight_max``,
+    (when ``kl_coef > 0``), ``loss_action_mean`` (when ``action_mean_weight > 0``) and diagnostics (``weight_mean``, ``weight_max``,
     ``negative_fraction``, ``action_accuracy``, ``noise_level``, ``num_scored``).
 
     Examples:
@@ -161,6 +164,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
     @property
     def out_keys(self) -> list[str]:
         keys = ["loss_action", "loss_goal"] + (["loss_kl"] if self.kl_coef > 0 else [])
+        keys += ["loss_action_mean"] if self.action_mean_weight > 0 else []
         return keys + ["weight_mean", "weight_max", "negative_fraction", "action_accuracy", "noise_level", "num_scored"]
 
     def sample_weights(self, tensordict: TensorDictBase, batch: int, device: torch.device) -> torch.Tensor:
@@ -210,6 +214,13 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         }
         if self.kl_coef > 0:
             out["loss_kl"] = self.kl_coef * self._kl(s, is_action)
+        if self.action_mean_weight > 0:  # the demonstrations' expected bins, as pretraining scored them
+            is_demo = tensordict.get(self.tensor_keys.is_demo, None)
+            demo = (torch.zeros(s.batch, dtype=torch.bool, device=device) if is_demo is None
+                    else is_demo.reshape(s.batch).bool().to(device))
+            select = is_action & demo[s.sample]
+            error = self.action_mean_error(s.logits[select], s.targets[select])
+            out["loss_action_mean"] = self.action_mean_weight * error.sum() / select.sum().clamp_min(1)
         out.update(
             weight_mean=weights.mean().detach(),
             weight_max=weights.max().detach(),

@@ -328,6 +328,23 @@ class MMaDAModel(nn.Module):
                              f"proprio_drop_dims={self.config.proprio_drop_dims}).")
         return torch.tensor([read.index(int(d)) for d in dims], dtype=torch.long)
 
+    def proprio_drop_index(self, keep_dims) -> list[int] | None:
+        """The proprio tokens state dropout masks when it leaves the state dimensions ``keep_dims`` readable:
+        every other token of the segment (None when ``keep_dims`` is empty: state dropout masks them all).
+
+        Raises:
+            ValueError: as :meth:`proprio_segment_index`, or if ``keep_dims`` keeps every token (nothing to mask).
+        """
+        keep = [int(d) for d in keep_dims or []]
+        if not keep:
+            return None
+        keep_at = set(self.proprio_segment_index(keep).tolist())
+        dropped = [i for i in range(len(self.proprio_index)) if i not in keep_at]
+        if not dropped:
+            raise ValueError(f"proprio_drop_keep_dims={keep} keeps every state dimension in the sequence: "
+                             "state dropout would mask nothing.")
+        return dropped
+
     def tokenizers(self) -> list[nn.Module]:
         return [t for t in (self.text_tokenizer, self.image_tokenizer, self.action_tokenizer, self.proprio_tokenizer) if t is not None]
 

@@ -18,8 +18,9 @@ from torchrl.objectives.value import GAE
 from mmada_rl import training
 from mmada_rl.baselines import NormalizationStats
 from mmada_rl.baselines.encoders import EncoderConfig
-from mmada_rl.data import WINDOW_SKIPS, DemoBuffer, make_window_buffer, window_skips
+from mmada_rl.data import WINDOW_SKIPS, DemoBuffer, RandomShift, make_window_buffer, window_skips
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
+from mmada_rl.diffusion.schedules import check_probability
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.envs.maniskill import EnvConfig, make_env, privileged_state_dim
 from mmada_rl.evaluation import EVAL_SEED_BASE, resolve_model_dir
@@ -430,12 +431,28 @@ def demo_window_skips(cfg: DictConfig) -> dict:
     return window_skips({**data, **{name: value for name, value in given.items() if value is not None}})
 
 
+def demo_random_shift(cfg: DictConfig) -> int:
+    """``demos.random_shift``, or where that is null (the default) the pretraining run's ``replay_buffer.random_shift``
+    (0 for a bare saved model): the pixels the demonstration windows' images are shifted by, as pretraining shifted them."""
+    pad = cfg.demos.get("random_shift")
+    if pad is None:
+        pad = pretraining_config(cfg).get("replay_buffer", {}).get("random_shift", 0)
+    if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
+        raise ValueError(f"demos.random_shift={pad!r} must be a whole number of pixels >= 0 (0: off).")
+    return pad
+
+
 def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):
-    """Chunk windows of the demonstrations (``None`` when ``demos.ratio`` is 0), with :func:`demo_window_skips`."""
+    """Chunk windows of the demonstrations (``None`` when ``demos.ratio`` is 0), with :func:`demo_window_skips` and
+    the image shift of :func:`demo_random_shift`."""
     _, n_demo = split_batch(cfg)
     if n_demo == 0:
         return None
-    return make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed), **demo_window_skips(cfg))
+    windows = make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed), **demo_window_skips(cfg))
+    pad = demo_random_shift(cfg)
+    if pad:
+        windows.append_transform(RandomShift(pad, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))
+    return windows
 
 
 def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) -> TensorDict:
@@ -456,6 +473,36 @@ def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) 
 
 
 # -- losses ------------------------------------------------------------------------------
+#: the pretraining regularisers (``loss.<option>`` of both recipes) fine-tuning keeps unless told otherwise
+PRETRAINING_LOSS_OPTIONS = ("proprio_drop_prob", "proprio_drop_keep_dims", "action_mean_weight")
+
+
+def pretraining_loss_options(cfg: DictConfig, model: MMaDAModel) -> dict:
+    """:class:`~mmada_rl.objectives.MaskedDiffusionLoss` options for the demonstration (and online) rows: state
+    dropout (``proprio_drop_prob``, ``proprio_drop_index`` from ``proprio_drop_keep_dims``) and ``action_mean_weight``,
+    each ``loss.<option>``, or where that is null (the default) the pretraining run's ``loss.<option>`` (its checkpoint's
+    ``config.json``; off for a bare saved model): the demonstration updates then train the loss the policy was
+    pretrained with, not one without the regularisers that made it generalise."""
+    saved = pretraining_config(cfg).get("loss", {})
+    given = {name: cfg.loss.get(name) for name in PRETRAINING_LOSS_OPTIONS}
+    option = {name: saved.get(name) if given[name] is None else given[name] for name in PRETRAINING_LOSS_OPTIONS}
+    prob, weight = float(option["proprio_drop_prob"] or 0.0), float(option["action_mean_weight"] or 0.0)
+    keep = [int(d) for d in option["proprio_drop_keep_dims"] or []]
+    check_probability("loss.proprio_drop_prob", prob)
+    if weight < 0:
+        raise ValueError(f"loss.action_mean_weight={weight} must be >= 0 (0: off).")
+    if weight > 0 and not model.action_tokenizer.has_ordered_bins:
+        raise ValueError(f"loss.action_mean_weight={weight} scores the expected bin of each action token, so it needs "
+                         f"ordered bin tokens, not a {type(model.action_tokenizer).__name__}.")
+    try:
+        index = model.proprio_drop_index(keep) if prob > 0 else None
+    except ValueError as err:
+        if str(err).startswith("proprio_drop_keep_dims"):  # named as the config names it
+            raise ValueError(f"loss.{err}") from None
+        raise
+    return {"proprio_drop_prob": prob, "proprio_drop_index": index, "action_mean_weight": weight}
+
+
 def make_loss(cfg: DictConfig, model: MMaDAModel):
     if cfg.algo == "rwr":
         r = cfg.loss.rwr
@@ -465,7 +512,7 @@ def make_loss(cfg: DictConfig, model: MMaDAModel):
             max_negative_nll=float(r.max_negative_nll), demo_weight=float(r.demo_weight),
             normalize_weights=bool(r.normalize_weights), standardize_advantage=bool(r.standardize_advantage),
             reference=reference, kl_coef=float(r.kl_coef), weight_goal=bool(r.weight_goal),
-            schedule=cfg.loss.schedule, goal_weight=float(cfg.loss.goal_weight),
+            schedule=cfg.loss.schedule, goal_weight=float(cfg.loss.goal_weight), **pretraining_loss_options(cfg, model),
         )
     p = cfg.loss.ppo
     return PathPPOLoss(model.denoiser, clip_epsilon=float(p.clip_epsilon), ratio_level=p.ratio_level,
@@ -480,8 +527,10 @@ def make_demo_anchor(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss 
     coef = float(cfg.loss.ppo.demo_coef) if cfg.algo == "ppo" else 0.0
     if coef == 0:
         return None
+    options = pretraining_loss_options(cfg, model)
+    options["action_mean_weight"] *= coef
     return MaskedDiffusionLoss(model.denoiser, schedule=cfg.loss.schedule, action_weight=coef,
-                               goal_weight=coef * float(cfg.loss.goal_weight))
+                               goal_weight=coef * float(cfg.loss.goal_weight), condition_weight=0.0, **options)
 
 
 def freezes_visual_encoder(cfg: DictConfig) -> bool:

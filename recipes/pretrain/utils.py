@@ -206,12 +206,12 @@ def proprio_drop_index(cfg: DictConfig, model: MMaDAModel) -> list[int] | None:
     if not float(cfg.loss.proprio_drop_prob) > 0:
         raise ValueError(f"loss.proprio_drop_keep_dims={keep} names the state dropout keeps, but it is off "
                          "(loss.proprio_drop_prob=0).")
-    keep_at = set(model.proprio_segment_index(keep).tolist())
-    dropped = [i for i in range(len(model.proprio_index)) if i not in keep_at]
-    if not dropped:
-        raise ValueError(f"loss.proprio_drop_keep_dims={keep} keeps every state dimension in the sequence: "
-                         "state dropout would mask nothing.")
-    return dropped
+    try:
+        return model.proprio_drop_index(keep)
+    except ValueError as err:
+        if str(err).startswith("proprio_drop_keep_dims"):  # named as the config names it
+            raise ValueError(f"loss.{err}") from None
+        raise
 
 
 def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
