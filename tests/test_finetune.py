@@ -864,6 +864,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["value.input=privileged_state", "advantage.estimator=return"], "uses no critic"),
     (["value.input=privileged_state", "value.pretrain_steps=5"], "hold no privileged state"),
     (["value.warmup_env_steps=-1"], "value.warmup_env_steps must be >= 0"),
+    (["loss.action_mean_weight=1"], "needs ordered bin tokens, not a VQActionTokenizer"),
+    (["demos.random_shift=-1"], "demos.random_shift=-1 must be a whole number of pixels >= 0"),
     (["value.warmup_env_steps=10", "advantage.estimator=return"], "use advantage.estimator=gae or value.warmup_env_steps=0"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
@@ -886,6 +888,12 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "value.input=privileged_state" in privileged and not any("normalize_privileged" in a for a in privileged)
     raw = compare.command("mmada_gae_noise_privileged_raw", "PickCube-v1", 0, 1000, out, "x", 5, 500)
     assert "value.input=privileged_state" in raw and "value.normalize_privileged=false" in raw
+    # the methods recorded before fine-tuning kept the pretraining regularisers turn them off; the _keep ones do not
+    off = {"loss.proprio_drop_prob=0", "loss.action_mean_weight=0", "demos.random_shift=0"}
+    assert off <= set(privileged) and off <= set(compare.command("mmada_demos_only", "PickCube-v1", 0, 1000, out, "x", 5, 500))
+    keep = compare.command("mmada_gae_noise_privileged_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500)
+    assert set(privileged) - set(keep) == off and set(keep) <= set(privileged)  # those three alone differ
+    assert not off & set(compare.command("mmada_demos_only_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500))
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")

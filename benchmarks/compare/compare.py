@@ -50,8 +50,17 @@ from common import RESULTS, markdown_table, save_figure, write_results  # noqa: 
 from pretraining import read_scalar  # noqa: E402
 
 #: the fine-tuning recipe as the methods below were run and recorded: a success ended the episode and was worth its
-#: step's reward alone (advantage.absorbing_success=false); kept so that their recorded results reproduce
-_FINETUNE = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "advantage.absorbing_success=false"]
+#: step's reward alone (advantage.absorbing_success=false), and the demonstration updates trained without the
+#: pretraining run's state dropout, expected-bin loss and image shift; kept so that their recorded results reproduce
+_FINETUNE = ["recipes/finetune/finetune.py", "--config-name", "maniskill", "advantage.absorbing_success=false",
+             "loss.proprio_drop_prob=0", "loss.action_mean_weight=0", "demos.random_shift=0"]
+#: the recipe's defaults for those three: the loss the policy was pretrained with (the methods named ..._keep)
+_KEEP_PRETRAINING_LOSS = ("loss.proprio_drop_prob=", "loss.action_mean_weight=", "demos.random_shift=")
+
+
+def _keep_pretraining_loss(args: list[str]) -> list[str]:
+    """``args`` without the overrides that turn the pretraining run's regularisers off."""
+    return [a for a in args if not a.startswith(_KEEP_PRETRAINING_LOSS)]
 #: filtered self-imitation: sparse reward, episode returns as advantages, binary weights
 _RFT = [*_FINETUNE, "algo=rwr", "env.reward=sparse",
         "advantage.estimator=return", "loss.rwr.weighting=binary", "loss.rwr.normalize_weights=true",
@@ -131,6 +140,13 @@ METHODS = {
     "mmada_demos_only": ("No-RL control: the same fine-tuning updates on demonstrations only", "rgb+proprio",
                          [*_FINETUNE, "algo=rwr", "demos.ratio=1.0",
                           "collector.temperature=0.5"], True),
+    "mmada_demos_only_keep": ("No-RL control with the pretraining run's state dropout, expected-bin loss and image "
+                              "shift kept", "rgb+proprio",
+                              _keep_pretraining_loss([*_FINETUNE, "algo=rwr", "demos.ratio=1.0",
+                                                      "collector.temperature=0.5"]), True),
+    "mmada_gae_noise_privileged_keep": ("mmada_gae_noise_privileged with the pretraining run's state dropout, "
+                                        "expected-bin loss and image shift kept (ours)", "rgb+proprio",
+                                        _keep_pretraining_loss(_GAE_NOISE_PRIVILEGED), True),
     "mmada_ppo": ("MMaDA-VLA + path-likelihood PPO (ours)", "rgb+proprio",
                   [*_FINETUNE, "algo=ppo"], True),
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
