@@ -167,10 +167,16 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         keys += ["loss_action_mean"] if self.action_mean_weight > 0 else []
         return keys + ["weight_mean", "weight_max", "negative_fraction", "action_accuracy", "noise_level", "num_scored"]
 
+    def demo_rows(self, tensordict: TensorDictBase, batch: int, device: torch.device) -> torch.Tensor:
+        """Bool ``[B]``: the demonstration samples (``is_demo``; none when it is absent)."""
+        is_demo = tensordict.get(self.tensor_keys.is_demo, None)
+        if is_demo is None:
+            return torch.zeros(batch, dtype=torch.bool, device=device)
+        return is_demo.reshape(batch).bool().to(device)
+
     def sample_weights(self, tensordict: TensorDictBase, batch: int, device: torch.device) -> torch.Tensor:
         """Float ``[B]``: the advantage weight of each sample (``demo_weight`` for demonstrations)."""
-        is_demo = tensordict.get(self.tensor_keys.is_demo, None)
-        is_demo = torch.zeros(batch, dtype=torch.bool, device=device) if is_demo is None else is_demo.reshape(batch).bool()
+        is_demo = self.demo_rows(tensordict, batch, device)
         advantage = tensordict.get(self.tensor_keys.advantage, None)
         if advantage is None:
             if not is_demo.all():
@@ -215,10 +221,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         if self.kl_coef > 0:
             out["loss_kl"] = self.kl_coef * self._kl(s, is_action)
         if self.action_mean_weight > 0:  # the demonstrations' expected bins, as pretraining scored them
-            is_demo = tensordict.get(self.tensor_keys.is_demo, None)
-            demo = (torch.zeros(s.batch, dtype=torch.bool, device=device) if is_demo is None
-                    else is_demo.reshape(s.batch).bool().to(device))
-            select = is_action & demo[s.sample]
+            select = is_action & self.demo_rows(tensordict, s.batch, device)[s.sample]
             error = self.action_mean_error(s.logits[select], s.targets[select])
             out["loss_action_mean"] = self.action_mean_weight * error.sum() / select.sum().clamp_min(1)
         out.update(

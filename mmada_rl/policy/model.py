@@ -328,9 +328,10 @@ class MMaDAModel(nn.Module):
                              f"proprio_drop_dims={self.config.proprio_drop_dims}).")
         return torch.tensor([read.index(int(d)) for d in dims], dtype=torch.long)
 
-    def proprio_drop_index(self, keep_dims) -> list[int] | None:
+    def proprio_drop_index(self, keep_dims, name: str = "proprio_drop_keep_dims") -> list[int] | None:
         """The proprio tokens state dropout masks when it leaves the state dimensions ``keep_dims`` readable:
         every other token of the segment (None when ``keep_dims`` is empty: state dropout masks them all).
+        ``name``: what the error calls ``keep_dims`` (a recipe's config key).
 
         Raises:
             ValueError: as :meth:`proprio_segment_index`, or if ``keep_dims`` keeps every token (nothing to mask).
@@ -341,7 +342,7 @@ class MMaDAModel(nn.Module):
         keep_at = set(self.proprio_segment_index(keep).tolist())
         dropped = [i for i in range(len(self.proprio_index)) if i not in keep_at]
         if not dropped:
-            raise ValueError(f"proprio_drop_keep_dims={keep} keeps every state dimension in the sequence: "
+            raise ValueError(f"{name}={keep} keeps every state dimension in the sequence: "
                              "state dropout would mask nothing.")
         return dropped
 

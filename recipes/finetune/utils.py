@@ -494,12 +494,7 @@ def pretraining_loss_options(cfg: DictConfig, model: MMaDAModel) -> dict:
     if weight > 0 and not model.action_tokenizer.has_ordered_bins:
         raise ValueError(f"loss.action_mean_weight={weight} scores the expected bin of each action token, so it needs "
                          f"ordered bin tokens, not a {type(model.action_tokenizer).__name__}.")
-    try:
-        index = model.proprio_drop_index(keep) if prob > 0 else None
-    except ValueError as err:
-        if str(err).startswith("proprio_drop_keep_dims"):  # named as the config names it
-            raise ValueError(f"loss.{err}") from None
-        raise
+    index = model.proprio_drop_index(keep, name="loss.proprio_drop_keep_dims") if prob > 0 else None
     return {"proprio_drop_prob": prob, "proprio_drop_index": index, "action_mean_weight": weight}
 
 

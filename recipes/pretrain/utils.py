@@ -206,12 +206,7 @@ def proprio_drop_index(cfg: DictConfig, model: MMaDAModel) -> list[int] | None:
     if not float(cfg.loss.proprio_drop_prob) > 0:
         raise ValueError(f"loss.proprio_drop_keep_dims={keep} names the state dropout keeps, but it is off "
                          "(loss.proprio_drop_prob=0).")
-    try:
-        return model.proprio_drop_index(keep)
-    except ValueError as err:
-        if str(err).startswith("proprio_drop_keep_dims"):  # named as the config names it
-            raise ValueError(f"loss.{err}") from None
-        raise
+    return model.proprio_drop_index(keep, name="loss.proprio_drop_keep_dims")
 
 
 def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
