@@ -181,8 +181,27 @@ def test_actor_on_the_device_reads_cpu_observations_and_returns_cpu_actions(mode
     torch.testing.assert_close(replayed.cpu(), td[LOG_PROBS_KEY].cpu(), rtol=1e-4, atol=1e-3)
 
 
-def test_training_windows_on_the_cpu_feed_a_model_on_the_device(models):
-    """The recipes sample windows from CPU buffers; the model's loss inputs land on its own device."""
+def test_mean_read_out_on_the_device_acts_as_on_the_cpu(models):
+    """``action_readout="mean"`` (each action token's expected bin) decodes through the bins' centres on the
+    device, as validation and evaluation run it."""
+    cpu_model, dev_model = models
+    try:
+        for model in models:
+            model.set_action_readout("mean")
+        obs = observations(3)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            dev, cpu = MMaDAActor(dev_model)(obs.clone()), MMaDAActor(cpu_model)(obs.clone())
+        torch.testing.assert_close(dev[ACTION_CHUNK_KEY].cpu(), cpu[ACTION_CHUNK_KEY], rtol=1e-4, atol=1e-4)
+    finally:
+        for model in models:
+            model.set_action_readout("token")
+
+
+@pytest.mark.parametrize("options", [{}, {"action_mean_weight": 1.0}, {"action_label_sigma": 2.0}],
+                         ids=["plain", "action_mean", "soft_labels"])
+def test_training_windows_on_the_cpu_feed_a_model_on_the_device(models, options):
+    """The recipes sample windows from CPU buffers and build the loss on the model already on its device
+    (never moving the loss module): the inputs and the loss's own tables land there."""
     cpu_model, dev_model = models
     windows = observations(4)
     windows.set(ACTION_CHUNK_KEY, torch.rand(4, CHUNK, 7) * 2 - 1)
@@ -191,8 +210,9 @@ def test_training_windows_on_the_cpu_feed_a_model_on_the_device(models):
     rows = dev_model.loss_inputs(windows.clone())
     assert rows[SEQUENCE_KEY].device.type == DEVICE.type
     assert torch.equal(rows[SEQUENCE_KEY].cpu(), cpu_model.loss_inputs(windows.clone())[SEQUENCE_KEY])
-    losses = MaskedDiffusionLoss(dev_model.denoiser)(rows)
-    (losses["loss_action"] + losses["loss_goal"]).backward()
+    losses = MaskedDiffusionLoss(dev_model.denoiser, **options)(rows)
+    assert ("loss_action_mean" in losses.keys()) == ("action_mean_weight" in options)
+    sum(value for key, value in losses.items() if key.startswith("loss_")).backward()
     assert grads_of(dev_model.denoiser)
 
 

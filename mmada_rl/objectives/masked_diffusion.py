@@ -206,14 +206,14 @@ class MaskedDiffusionLoss(LossModule):
         self.action_range = self.layout.vocab.range_of("action")
         self.action_mean_weight = float(action_mean_weight)
         num_bins = self.action_range[1] - self.action_range[0]
+        device = next(denoiser.parameters()).device  # with the weights, as TorchRL's losses place their buffers
         #: each action id's bin centre in the bins' normalised units, ``[-1, 1]`` over the range (ordered ids)
-        self.register_buffer("action_bin_centres", torch.linspace(-1 + 1 / num_bins, 1 - 1 / num_bins, num_bins),
-                             persistent=False)
+        self.register_buffer("action_bin_centres", torch.linspace(-1 + 1 / num_bins, 1 - 1 / num_bins, num_bins,
+                                                                  device=device), persistent=False)
         #: row ``c``: the soft target of clean action id ``c`` over the action range (None: one-hot); a buffer,
-        #: so it moves with the loss module to the device instead of at every step
+        #: so it moves with the loss module instead of at every step
         self.register_buffer("action_soft_targets", (
-            gaussian_bin_targets(self.action_range[1] - self.action_range[0], float(action_label_sigma))
-            if action_label_sigma > 0 else None
+            gaussian_bin_targets(num_bins, float(action_label_sigma)).to(device) if action_label_sigma > 0 else None
         ), persistent=False)
         #: each target position's index in ``layout.target_positions``, the order of the cached pass's outputs
         self._target_index = torch.full((self.layout.length,), -1, dtype=torch.long)
