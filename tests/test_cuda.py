@@ -8,7 +8,8 @@ Skipped where no CUDA device is present (CI). On a GPU machine:
 A copy of each tiny model runs on the device beside the CPU original: the
 masked-diffusion loss and its gradients agree, training on the device lowers the
 loss, the sampler commits every target in range and its decoding path replays
-exactly there, greedy decoding picks the same tokens, the actor takes CPU
+exactly there, greedy decoding picks the same tokens (and the mean read-out the
+same actions), the actor takes CPU
 observations and returns its chunk where the env reads it, and both fine-tuning
 losses run forward and backward on the device.
 """

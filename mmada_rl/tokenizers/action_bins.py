@@ -93,5 +93,6 @@ class UniformBinActionTokenizer(ActionTokenizer):
         return True
 
     def _bin_centres(self) -> torch.Tensor:
-        codes = torch.arange(self.vocab_size, device=self.bins.low.device)[:, None].expand(-1, self.config.action_dim)  # (V, d_a)
+        codes = torch.arange(self.vocab_size, device=self.bins.low.device)  # on the bins' device
+        codes = codes[:, None].expand(-1, self.config.action_dim)  # (V, d_a)
         return self.bins.decode(codes)[:, 0]  # (V,): the same bins in every dimension
