@@ -28,12 +28,13 @@ def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | No
         return images
     B, C, H, W = images.shape
     padded = F.pad(images.float(), (pad, pad, pad, pad), mode="replicate")  # (B, C, H+2p, W+2p)
-    dy, dx = torch.randint(0, 2 * pad + 1, (2, B, 1), generator=generator).to(images.device)
-    rows = (dy + torch.arange(H, device=images.device))[:, None, :, None]  # (B, 1, H, 1)
-    cols = (dx + torch.arange(W, device=images.device))[:, None, None, :]  # (B, 1, 1, W)
-    batch = torch.arange(B, device=images.device)[:, None, None, None]
-    channel = torch.arange(C, device=images.device)[None, :, None, None]
-    return padded[batch, channel, rows, cols].to(images.dtype)
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, B), generator=generator).tolist()
+    out = torch.empty_like(images)
+    # one crop per image: a slice copy each, several times faster than one gather over four index tensors
+    # (benchmarks/window_sampling.py)
+    for i, (y, x) in enumerate(zip(dy, dx)):
+        out[i] = padded[i, :, y:y + H, x:x + W]
+    return out
 
 
 class RandomShift(Transform):
@@ -67,6 +68,10 @@ class RandomShift(Transform):
         super().__init__(in_keys=keys, out_keys=keys)
         self.pad = pad
 
+    def shift(self, images: torch.Tensor) -> torch.Tensor:
+        """:func:`random_shift` of ``[B, C, H, W]`` images by up to ``pad`` pixels."""
+        return random_shift(images, self.pad)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         images = [tensordict.get(key) for key in self.in_keys]
         shapes = {tuple(image.shape) for image in images}
@@ -75,7 +80,7 @@ class RandomShift(Transform):
         shape = images[0].shape
         # the keys stacked along channels: one random offset per window moves all of them alike
         flat = torch.cat([image.reshape(-1, *shape[-3:]) for image in images], dim=1)
-        shifted = random_shift(flat, self.pad).split(shape[-3], dim=1)
+        shifted = self.shift(flat).split(shape[-3], dim=1)
         for key, image in zip(self.out_keys, shifted):
             tensordict.set(key, image.reshape(shape))
         return tensordict

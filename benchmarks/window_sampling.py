@@ -1,0 +1,138 @@
+"""Window sampling: what one training batch costs before the model sees it, and the random shift's share.
+
+    python benchmarks/window_sampling.py --demos data/dart/PickCube-v1-fov45 --batch-sizes 32 128
+
+The pretraining recipes draw each batch of chunk windows from the demonstration
+buffer on the CPU (``make_window_buffer``) and shift its observation and goal
+images together (``RandomShift``, 4 pixels) before ``loss_inputs`` tokenizes
+them. With the model on a GPU that is most of a step: nine pretraining runs
+side by side on an H200 were each bound by it (README, "On a GPU"). This times,
+on real windows of ``--demos``, one ``sample()`` of the recipe's pipeline with
+the shift as :func:`mmada_rl.data.random_shift` crops it (a slice copy per
+image), with the single indexed gather over four index tensors that crop used
+before (kept here as the reference), and without a shift; and the two crops
+alone on the sampled images. Rows run interleaved, ``--repeats`` rounds; each
+ratio is the median of the per-round ratios to the gather. Both crops give the
+same images for the same random offsets (checked before timing).
+
+Writes ``benchmarks/results/<name>.{json,md,png}`` (default ``window_sampling``).
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
+
+from mmada_rl.data import DemoBuffer, RandomShift, make_window_buffer, random_shift  # noqa: E402
+from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY  # noqa: E402
+
+
+def gather_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """The crop :func:`random_shift` replaced: the same offsets, read with one gather over four index tensors."""
+    B, C, H, W = images.shape
+    padded = F.pad(images.float(), (pad, pad, pad, pad), mode="replicate")
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, B, 1), generator=generator)
+    rows = (dy + torch.arange(H))[:, None, :, None]
+    cols = (dx + torch.arange(W))[:, None, None, :]
+    return padded[torch.arange(B)[:, None, None, None], torch.arange(C)[None, :, None, None], rows, cols].to(images.dtype)
+
+
+class GatherShift(RandomShift):
+    """``RandomShift`` with the earlier crop."""
+
+    def shift(self, images: torch.Tensor) -> torch.Tensor:
+        return gather_shift(images, self.pad)
+
+
+def timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--demos", type=Path, required=True, help="demonstration buffer (mmada-rl collect)")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[32, 128], help="windows per batch (default: 32 128)")
+    parser.add_argument("--chunk-size", type=int, default=5, help="K, actions per window (default: 5)")
+    parser.add_argument("--pad", type=int, default=4, help="largest shift in pixels (default: 4, the recipes')")
+    parser.add_argument("--repeats", type=int, default=20, help="interleaved rounds (default: 20)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default: 1, as the recipes train)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--name", default="window_sampling", help="results file stem (default: window_sampling)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    if min(args.batch_sizes) < 1 or args.repeats < 1 or args.threads < 1 or args.pad < 1 or args.chunk_size < 1:
+        parser.error("--batch-sizes, --chunk-size, --pad, --repeats and --threads must be >= 1.")
+    if not args.demos.exists():
+        parser.error(f"no demonstration buffer at {args.demos}.")
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    buffer = DemoBuffer.open(args.demos)
+    keys = [IMAGE_KEY, GOAL_IMAGE_KEY]
+    results, rows = [], []
+    for batch_size in args.batch_sizes:
+        pipelines = {}
+        for name, transform in (("sample(), slice crop", RandomShift(args.pad, keys)),
+                                ("sample(), gather crop (before)", GatherShift(args.pad, keys)),
+                                ("sample(), no shift", None)):
+            windows = make_window_buffer(buffer, args.chunk_size, batch_size, seed=args.seed)
+            if transform is not None:
+                windows.append_transform(transform)
+            pipelines[name] = windows
+        images = pipelines["sample(), no shift"].sample()[IMAGE_KEY]
+        for a, b in ((random_shift(images, args.pad, torch.Generator().manual_seed(s)),
+                      gather_shift(images, args.pad, torch.Generator().manual_seed(s))) for s in range(3)):
+            if not torch.equal(a, b):
+                raise RuntimeError("the two crops disagree on the same offsets")
+        jobs = {**{name: windows.sample for name, windows in pipelines.items()},
+                "crop alone, slice": lambda: random_shift(images, args.pad),
+                "crop alone, gather (before)": lambda: gather_shift(images, args.pad)}
+        for job in jobs.values():  # warm-up
+            job()
+        times = {name: [] for name in jobs}
+        for _ in range(args.repeats):
+            for name, job in jobs.items():
+                times[name].append(timed(job))
+        for name, t in times.items():
+            reference = times["crop alone, gather (before)" if name.startswith("crop") else "sample(), gather crop (before)"]
+            median = statistics.median(t)
+            ratio = statistics.median(r / x for x, r in zip(t, reference))
+            results.append({"batch_size": batch_size, "name": name, "seconds": t, "median_s": median,
+                            "speedup_vs_gather": ratio})
+            rows.append([batch_size, name, f"{1000 * median:.1f}", f"{ratio:.2f}×"])
+
+    md = (f"# Window sampling\n\nOne batch of chunk windows (K = {args.chunk_size}) of `{args.demos}` drawn as the "
+          f"pretraining recipes draw it, the observation and goal images shifted together by up to {args.pad} px; "
+          f"{args.threads} torch thread(s), {args.repeats} interleaved rounds; the last column is the median of the "
+          f"per-round ratios of the gather's time to the row's (the crop rows: to the gather crop alone).\n\n"
+          + markdown_table(["batch", "what", "median (ms)", "gather time / this"], rows) + "\n")
+    write_results(args.name, {"demos": str(args.demos), "chunk_size": args.chunk_size, "pad": args.pad,
+                              "threads": args.threads, "repeats": args.repeats, "rows": results}, md, args.out)
+
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(args.batch_sizes), figsize=(5.5 * len(args.batch_sizes), 3.2), squeeze=False)
+    for ax, batch_size in zip(axes[0], args.batch_sizes):
+        mine = [r for r in results if r["batch_size"] == batch_size]
+        ax.barh([r["name"] for r in mine][::-1], [1000 * r["median_s"] for r in mine][::-1], color="tab:blue")
+        ax.set_xlabel("median time (ms)")
+        ax.set_title(f"batch {batch_size}")
+    save_figure(fig, args.out / f"{args.name}.png")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
