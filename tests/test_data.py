@@ -164,7 +164,7 @@ def test_random_shift_moves_each_windows_observation_and_goal_by_one_offset(demo
 
 def test_random_shift_refuses_bad_pads_and_images_of_different_shapes():
     for pad in (-1, 2.5, True):
-        with pytest.raises(ValueError, match="pad must be an int >= 0"):
+        with pytest.raises(ValueError, match="must be a whole number of pixels >= 0"):
             RandomShift(pad)
     td = TensorDict({IMAGE_KEY: torch.zeros(2, 3, 8, 8, dtype=torch.uint8),
                      GOAL_IMAGE_KEY: torch.zeros(2, 3, 16, 16, dtype=torch.uint8)}, [2])

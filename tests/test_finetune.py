@@ -572,7 +572,8 @@ def test_fine_tuning_keeps_the_pretraining_regularisers(toy_pretrain_run, model,
     off = OmegaConf.merge(cfg, {"loss": {"proprio_drop_prob": 0.0}, "demos": {"random_shift": 0}})
     assert utils.pretraining_loss_options(off, model)["proprio_drop_prob"] == 0.0
     assert not any(isinstance(t, RandomShift) for t in utils.make_demo_windows(off, demos, model).transform)
-    with pytest.raises(ValueError, match="needs ordered bin tokens, not a VQActionTokenizer"):
+    with pytest.raises(ValueError, match=r"needs ordered bin tokens \(tokenizers.action_type=bins\), "
+                                         r"not a VQActionTokenizer"):
         utils.pretraining_loss_options(OmegaConf.merge(cfg, {"loss": {"action_mean_weight": 1.0}}), model)
     every = model.proprio_index.tolist()
     with pytest.raises(ValueError, match=r"loss.proprio_drop_keep_dims=\[.*\] keeps every state dimension"):
@@ -864,7 +865,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["value.input=privileged_state", "advantage.estimator=return"], "uses no critic"),
     (["value.input=privileged_state", "value.pretrain_steps=5"], "hold no privileged state"),
     (["value.warmup_env_steps=-1"], "value.warmup_env_steps must be >= 0"),
-    (["loss.action_mean_weight=1"], "needs ordered bin tokens, not a VQActionTokenizer"),
+    (["loss.action_mean_weight=1"], "needs ordered bin tokens (tokenizers.action_type=bins), not a VQActionTokenizer"),
     (["demos.random_shift=-1"], "demos.random_shift=-1 must be a whole number of pixels >= 0"),
     (["value.warmup_env_steps=10", "advantage.estimator=return"], "use advantage.estimator=gae or value.warmup_env_steps=0"),
 ])

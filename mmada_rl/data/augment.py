@@ -19,7 +19,15 @@ from torchrl.envs.transforms import Transform
 
 from mmada_rl.keys import IMAGE_KEY
 
-__all__ = ["RandomShift", "random_shift"]
+__all__ = ["RandomShift", "check_shift", "random_shift"]
+
+
+def check_shift(pad, name: str = "pad") -> int:
+    """``pad`` if it is a whole number of pixels ``>= 0`` (0: no shift), else a ``ValueError`` naming ``name``
+    (the config key that set it)."""
+    if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
+        raise ValueError(f"{name}={pad!r} must be a whole number of pixels >= 0 (0: off).")
+    return pad
 
 
 def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -60,8 +68,7 @@ class RandomShift(Transform):
     """
 
     def __init__(self, pad: int = 4, image_keys: Sequence = (IMAGE_KEY,)) -> None:
-        if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
-            raise ValueError(f"pad must be an int >= 0 (pixels), got {pad!r}.")
+        check_shift(pad)
         keys = list(image_keys)
         if not keys:
             raise ValueError("image_keys must name at least one image.")

@@ -175,6 +175,13 @@ class ActionTokenizer(TokenizerIOMixin, ActionTokenizerBase, TensorDictModuleBas
         has a mean (:meth:`decode_mean`)."""
         return False
 
+    def require_ordered_bins(self, what: str) -> None:
+        """A ``ValueError`` saying that ``what`` (e.g. ``"loss.action_mean_weight=1 scores the expected bin of each
+        action token"``) needs ordered bin tokens, unless this tokenizer has them (:attr:`has_ordered_bins`)."""
+        if not self.has_ordered_bins:
+            raise ValueError(f"{what}, so it needs ordered bin tokens (tokenizers.action_type=bins), "
+                             f"not a {type(self).__name__}.")
+
     def _bin_centres(self) -> torch.Tensor:
         """Normalised value ``[vocab_size]`` of each code (tokenizers with ordered bins)."""
         raise NotImplementedError

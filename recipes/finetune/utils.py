@@ -18,7 +18,7 @@ from torchrl.objectives.value import GAE
 from mmada_rl import training
 from mmada_rl.baselines import NormalizationStats
 from mmada_rl.baselines.encoders import EncoderConfig
-from mmada_rl.data import WINDOW_SKIPS, DemoBuffer, RandomShift, make_window_buffer, window_skips
+from mmada_rl.data import WINDOW_SKIPS, DemoBuffer, RandomShift, check_shift, make_window_buffer, window_skips
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.schedules import check_probability
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
@@ -437,9 +437,7 @@ def demo_random_shift(cfg: DictConfig) -> int:
     pad = cfg.demos.get("random_shift")
     if pad is None:
         pad = pretraining_config(cfg).get("replay_buffer", {}).get("random_shift", 0)
-    if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
-        raise ValueError(f"demos.random_shift={pad!r} must be a whole number of pixels >= 0 (0: off).")
-    return pad
+    return check_shift(pad, "demos.random_shift")
 
 
 def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):
@@ -491,9 +489,9 @@ def pretraining_loss_options(cfg: DictConfig, model: MMaDAModel) -> dict:
     check_probability("loss.proprio_drop_prob", prob)
     if weight < 0:
         raise ValueError(f"loss.action_mean_weight={weight} must be >= 0 (0: off).")
-    if weight > 0 and not model.action_tokenizer.has_ordered_bins:
-        raise ValueError(f"loss.action_mean_weight={weight} scores the expected bin of each action token, so it needs "
-                         f"ordered bin tokens, not a {type(model.action_tokenizer).__name__}.")
+    if weight > 0:
+        model.action_tokenizer.require_ordered_bins(f"loss.action_mean_weight={weight} scores the expected bin of "
+                                                    "each action token")
     index = model.proprio_drop_index(keep, name="loss.proprio_drop_keep_dims") if prob > 0 else None
     return {"proprio_drop_prob": prob, "proprio_drop_index": index, "action_mean_weight": weight}
 

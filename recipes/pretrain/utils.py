@@ -6,7 +6,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, make_window_buffer, window_skips
+from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, check_shift, make_window_buffer, window_skips
 from mmada_rl.data.windows import check_state_differences
 from mmada_rl.diffusion import FullMaskMixture, UniformNoiseSchedule, make_noise_schedule
 from mmada_rl.diffusion.schedules import check_probability
@@ -15,7 +15,6 @@ from mmada_rl.envs.tasks import task_option
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
-from mmada_rl.tokenizers import UniformBinActionTokenizer
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
 from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler
@@ -167,9 +166,7 @@ def make_data(cfg: DictConfig, buffers: list[DemoBuffer]):
         weights = cfg.data.get("task_weights", "uniform")
         weights = weights if isinstance(weights, str) else list(weights)
         data = MultiTaskWindows(buffers, K, batch, weights=weights, seed=seed, **skips)
-    pad = cfg.replay_buffer.get("random_shift", 0)
-    if not isinstance(pad, int) or isinstance(pad, bool) or pad < 0:
-        raise ValueError(f"replay_buffer.random_shift={pad!r} must be a whole number of pixels >= 0 (0: off).")
+    pad = check_shift(cfg.replay_buffer.get("random_shift", 0), "replay_buffer.random_shift")
     if pad:
         data.append_transform(RandomShift(pad, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))
     return data
@@ -186,9 +183,8 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
     mean_weight = float(l.get("action_mean_weight", 0.0))
     for name, value, what in (("action_label_sigma", sigma, "smooths the targets over neighbouring bins"),
                               ("action_mean_weight", mean_weight, "scores the expected bin of each action token")):
-        if value > 0 and not isinstance(model.action_tokenizer, UniformBinActionTokenizer):
-            raise ValueError(f"loss.{name}={value} {what}, so it needs ordered bin tokens "
-                             f"(tokenizers.action_type=bins), not a {type(model.action_tokenizer).__name__}.")
+        if value > 0:
+            model.action_tokenizer.require_ordered_bins(f"loss.{name}={value} {what}")
     return MaskedDiffusionLoss(
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
