@@ -226,7 +226,7 @@ def test_mean_readout_executes_the_expected_bins_of_greedy_chunks_only(model, ob
     assert MMaDAModel.load(bins.save(tmp_path / "policy")).action_readout == "mean"  # saved as switched last
     with pytest.raises(ValueError, match="action_readout must be one of"):
         MMaDAConfig(action_readout="median")
-    with pytest.raises(ValueError, match="VQActionTokenizer codes have no mean"):
+    with pytest.raises(ValueError, match=r"needs ordered bin tokens \(tokenizers.action_type=bins\), not a VQActionTokenizer"):
         model.set_action_readout("mean")
     assert model.action_readout == "token"
 
@@ -252,7 +252,7 @@ def test_decoding_switches_steps_and_readout_inside_the_block_only(model, observ
         raise RuntimeError("inside")
     assert bins.sampler is own
     vq_sampler = model.sampler
-    with pytest.raises(ValueError, match="codes have no mean"), model.decoding(num_steps=1, readout="mean"):
+    with pytest.raises(ValueError, match="reads each action token's expected bin"), model.decoding(num_steps=1, readout="mean"):
         pass
     assert model.action_readout == "token" and model.sampler is vq_sampler
 
@@ -382,7 +382,7 @@ def test_policy_embeds_action_bins_by_value(model, observations, tmp_path):
         assert reloaded.denoiser.action_value_embedding is not None
         torch.testing.assert_close(MMaDAActor(reloaded)(obs.clone())[ACTION_TOKENS_KEY], tokens)
     tokenizers = Tokenizers(model.text_tokenizer, model.image_tokenizer, model.action_tokenizer, model.proprio_tokenizer)
-    with pytest.raises(ValueError, match="action_value_embedding=true needs action tokens that are ordered bins"):
+    with pytest.raises(ValueError, match="action_value_embedding=true embeds the value of each action token's bin, so it needs ordered bin tokens"):
         MMaDAModel(MMaDAConfig(denoiser="tiny", denoiser_overrides={"action_value_embedding": True}), tokenizers)
 
 

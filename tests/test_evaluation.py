@@ -248,7 +248,7 @@ def test_noisy_evaluation_executes_the_greedy_chunks_with_seeded_noise(monkeypat
 
 def test_mean_readout_is_switched_for_one_evaluation(model_dir, tmp_path):
     """``evaluate(..., action_readout="mean")`` decodes greedy chunks by their expected bins for that run only,
-    says so in its outputs, and refuses policies whose action codes have no mean."""
+    says so in its outputs, and refuses policies whose action codes are not ordered bins."""
     from mmada_rl.diffusion.sampler import MaskedDiffusionSampler
     from mmada_rl.policy import MMaDAModel
 
@@ -267,7 +267,7 @@ def test_mean_readout_is_switched_for_one_evaluation(model_dir, tmp_path):
     assert result.action_readout == "mean" and "mean read-out" in result.table()
     assert json.loads((tmp_path / "eval.json").read_text())["action_readout"] == "mean"
     assert model.action_readout == "token"  # the policy's own read-out is restored
-    with pytest.raises(ValueError, match="codes have no mean"):
+    with pytest.raises(ValueError, match="needs ordered bin tokens"):
         evaluate(MMaDAModel.load(model_dir), "PickCube-v1", 1, action_readout="mean")
 
 
@@ -394,7 +394,7 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pic
     assert "| never grasped | dropped | stalled | near miss | short |" in (tmp_path / "pick_progress.md").read_text()
     assert (tmp_path / "pick_progress.png").stat().st_size > 0
     assert result["action_readout"] is None  # the policy's own
-    with pytest.raises(ValueError, match="codes have no mean"):  # the toy policy's actions are VQ codes
+    with pytest.raises(ValueError, match="needs ordered bin tokens"):  # the toy policy's actions are VQ codes
         bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "1", "--action-readout", "mean"])
     # the same probe on the demonstrations' own initial states
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "1", "--max-episode-steps", "5",

@@ -129,7 +129,8 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
                                         "so it needs ordered bin tokens"),
         (["loss.full_mask_prob=1.5"], "loss.full_mask_prob must lie in [0, 1], got 1.5"),
         (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
-        (["model.action_readout=mean"], "VQActionTokenizer codes have no mean"),
+        (["model.action_readout=mean"], "action_readout='mean' reads each action token's expected bin, so it needs ordered "
+                                          "bin tokens (tokenizers.action_type=bins), not a VQActionTokenizer"),
         (["model.state_differences=[[26,19]]"], "covers 29 dimensions, not the demonstrations' 29 plus the 1 of "
                                                 "model.state_differences=[[26, 19]]"),
         (["model.visual_encoder_freeze=true"], "model.visual_encoder_freeze=true fixes a CNN copied from "

@@ -280,7 +280,7 @@ def test_uniform_bins_round_trip_within_half_a_bin(fitted_bins, actions):
 
 def test_mean_readout_of_bin_distributions(fitted_bins, fitted_vq, fitted_fsq, actions):
     """``decode_mean``: a one-hot distribution reads its bin's centre, a split one the weighted mean of the
-    centres; grippers follow the sign of their mean; codes without an order have no mean."""
+    centres; grippers follow the sign of their mean; codes without an order have none."""
     tok, norm = fitted_bins, fitted_bins.normalizer
     tokens = tok.encode(actions[:6].clamp(norm.low, norm.high))  # (6, 7)
     onehot = torch.nn.functional.one_hot(tokens, tok.vocab_size).float()
@@ -296,7 +296,7 @@ def test_mean_readout_of_bin_distributions(fitted_bins, fitted_vq, fitted_fsq, a
         tok.decode_mean(torch.ones(2, 7, 255) / 255)
     for unordered in (fitted_vq[0], fitted_fsq):
         probs = torch.ones(1, unordered.tokens_per_action, unordered.vocab_size) / unordered.vocab_size
-        with pytest.raises(ValueError, match="no mean"):
+        with pytest.raises(ValueError, match="the mean read-out averages each token's bin centres, so it needs ordered bin tokens"):
             unordered.decode_mean(probs)
 
 

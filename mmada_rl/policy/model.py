@@ -233,10 +233,9 @@ class MMaDAModel(nn.Module):
         ):
             raise ValueError("denoiser_overrides.proprio_value_embedding=true needs proprio tokens that are ordered "
                              "bins (use_proprio=true and a bin proprio tokenizer).")
-        if denoiser_config.action_value_embedding and not self.action_tokenizer.has_ordered_bins:
-            raise ValueError(f"denoiser_overrides.action_value_embedding=true needs action tokens that are ordered "
-                             f"bins (tokenizers.action_type=bins); this policy's "
-                             f"{type(self.action_tokenizer).__name__} codes have no order.")
+        if denoiser_config.action_value_embedding:
+            self.action_tokenizer.require_ordered_bins("denoiser_overrides.action_value_embedding=true embeds the value "
+                                                       "of each action token's bin")
         self.denoiser = MaskedDiffusionDenoiser(denoiser_config, self.layout)
         if self.denoiser.config.cross_attention_to_visual and self.denoiser.visual_encoder is None:
             raise ValueError("the policy's cross-attention needs the denoiser to encode the observation image: "
@@ -248,9 +247,8 @@ class MMaDAModel(nn.Module):
         """How greedy chunks become actions from now on (:attr:`MMaDAConfig.action_readout`;
         evaluation switches it for one run)."""
         _check_action_readout(readout)
-        if readout == "mean" and not self.action_tokenizer.has_ordered_bins:
-            raise ValueError(f"action_readout='mean' needs uniform-bin action tokens; this policy's "
-                             f"{type(self.action_tokenizer).__name__} codes have no mean.")
+        if readout == "mean":
+            self.action_tokenizer.require_ordered_bins("action_readout='mean' reads each action token's expected bin")
         self.action_readout = readout
 
     @contextmanager

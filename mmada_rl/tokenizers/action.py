@@ -195,9 +195,7 @@ class ActionTokenizer(TokenizerIOMixin, ActionTokenizerBase, TensorDictModuleBas
         sign of that mean. Only for tokenizers whose tokens are ordered bins of one
         dimension each (:attr:`has_ordered_bins`): a VQ or FSQ code has no mean.
         """
-        if not self.has_ordered_bins:
-            raise ValueError(f"{type(self).__name__} codes are not ordered bins of one action dimension, so they "
-                             "have no mean; the mean read-out needs uniform bins (tokenizers.action_type=bins).")
+        self.require_ordered_bins("the mean read-out averages each token's bin centres")
         if probs.ndim < 2 or probs.shape[-2:] != (self.tokens_per_action, self.vocab_size):
             raise ValueError(f"probs must have shape [..., {self.tokens_per_action}, {self.vocab_size}], "
                              f"got {tuple(probs.shape)}.")
