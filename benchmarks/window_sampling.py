@@ -1,4 +1,4 @@
-"""Window sampling: what one training batch costs before the model sees it, and the random shift's share.
+"""Window sampling: what one training batch costs before the model sees it, the random shift's and the instruction's share.
 
     python benchmarks/window_sampling.py --demos data/dart/PickCube-v1-fov45 --batch-sizes 32 128
 
@@ -9,11 +9,15 @@ them. With the model on a GPU that is most of a step: nine pretraining runs
 side by side on an H200 were each bound by it (README, "On a GPU"). This times,
 on real windows of ``--demos``, one ``sample()`` of the recipe's pipeline with
 the shift as :func:`mmada_rl.data.random_shift` crops it (a slice copy per
-image), with the single indexed gather over four index tensors that crop used
-before (kept here as the reference), and without a shift; and the two crops
-alone on the sampled images. Rows run interleaved, ``--repeats`` rounds; each
-ratio is the median of the per-round ratios to the gather. Both crops give the
-same images for the same random offsets (checked before timing).
+image) and the instruction text as :class:`~mmada_rl.data.buffer.InstructionLookup`
+sets it (one element per distinct text, on the batch's device); with the
+lookup as it was before (a text per window, each converted to the batch's
+device when set); with both that and the single indexed gather over four index
+tensors that the crop used before (the reference: the pipeline before either
+change); and without a shift; then the two crops alone on the sampled images.
+Rows run interleaved, ``--repeats`` rounds; each ratio is the median of the
+per-round ratios to the reference. Both crops give the same images for the same
+random offsets, and both lookups the same texts (checked before timing).
 
 Writes ``benchmarks/results/<name>.{json,md,png}`` (default ``window_sampling``).
 """
@@ -31,8 +35,14 @@ import torch.nn.functional as F
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 
+from tensordict import NonTensorStack  # noqa: E402
+
 from mmada_rl.data import DemoBuffer, RandomShift, make_window_buffer, random_shift  # noqa: E402
-from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY  # noqa: E402
+from mmada_rl.data.buffer import InstructionLookup  # noqa: E402
+from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY, INSTRUCTION_KEY  # noqa: E402
+
+
+REFERENCE = "sample(), gather crop, a text per window (before)"
 
 
 def gather_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -50,6 +60,28 @@ class GatherShift(RandomShift):
 
     def shift(self, images: torch.Tensor) -> torch.Tensor:
         return gather_shift(images, self.pad)
+
+
+class PerWindowLookup(InstructionLookup):
+    """``InstructionLookup`` as it was: a stack of one text per window, converted to the batch's device when set."""
+
+    def forward(self, tensordict):
+        ids = tensordict.get(self.in_keys[0])
+        texts = [self.instructions[i] for i in ids.reshape(-1).tolist()]
+        tensordict.set(INSTRUCTION_KEY, NonTensorStack(*texts).reshape(ids.shape))
+        return tensordict
+
+
+def pipeline(buffer, args, batch_size: int, shift: RandomShift | None, per_window_lookup: bool = False):
+    """The recipes' window buffer with ``shift`` appended, optionally with the earlier instruction lookup."""
+    windows = make_window_buffer(buffer, args.chunk_size, batch_size, seed=args.seed)
+    if per_window_lookup:
+        lookups = windows._transform.transforms
+        (position,) = [i for i, t in enumerate(lookups) if isinstance(t, InstructionLookup)]
+        lookups[position] = PerWindowLookup(lookups[position].instructions)
+    if shift is not None:
+        windows.append_transform(shift)
+    return windows
 
 
 def timed(fn) -> float:
@@ -81,19 +113,21 @@ def main(argv: list[str] | None = None) -> int:
     keys = [IMAGE_KEY, GOAL_IMAGE_KEY]
     results, rows = [], []
     for batch_size in args.batch_sizes:
-        pipelines = {}
-        for name, transform in (("sample(), slice crop", RandomShift(args.pad, keys)),
-                                ("sample(), gather crop (before)", GatherShift(args.pad, keys)),
-                                ("sample(), no shift", None)):
-            windows = make_window_buffer(buffer, args.chunk_size, batch_size, seed=args.seed)
-            if transform is not None:
-                windows.append_transform(transform)
-            pipelines[name] = windows
-        images = pipelines["sample(), no shift"].sample()[IMAGE_KEY]
+        pipelines = {
+            "sample(), slice crop, one text element (now)": pipeline(buffer, args, batch_size, RandomShift(args.pad, keys)),
+            "sample(), slice crop, a text per window": pipeline(buffer, args, batch_size, RandomShift(args.pad, keys), True),
+            REFERENCE: pipeline(buffer, args, batch_size, GatherShift(args.pad, keys), True),
+            "sample(), no shift, one text element": pipeline(buffer, args, batch_size, None),
+        }
+        images = pipelines["sample(), no shift, one text element"].sample()[IMAGE_KEY]
         for a, b in ((random_shift(images, args.pad, torch.Generator().manual_seed(s)),
                       gather_shift(images, args.pad, torch.Generator().manual_seed(s))) for s in range(3)):
             if not torch.equal(a, b):
                 raise RuntimeError("the two crops disagree on the same offsets")
+        texts = [pipeline(buffer, args, batch_size, None, per_window).sample().get(INSTRUCTION_KEY).tolist()
+                 for per_window in (False, True)]
+        if texts[0] != texts[1]:
+            raise RuntimeError("the two instruction lookups disagree on the same windows")
         jobs = {**{name: windows.sample for name, windows in pipelines.items()},
                 "crop alone, slice": lambda: random_shift(images, args.pad),
                 "crop alone, gather (before)": lambda: gather_shift(images, args.pad)}
@@ -104,18 +138,19 @@ def main(argv: list[str] | None = None) -> int:
             for name, job in jobs.items():
                 times[name].append(timed(job))
         for name, t in times.items():
-            reference = times["crop alone, gather (before)" if name.startswith("crop") else "sample(), gather crop (before)"]
+            reference = times["crop alone, gather (before)" if name.startswith("crop") else REFERENCE]
             median = statistics.median(t)
             ratio = statistics.median(r / x for x, r in zip(t, reference))
             results.append({"batch_size": batch_size, "name": name, "seconds": t, "median_s": median,
-                            "speedup_vs_gather": ratio})
+                            "speedup_vs_before": ratio})
             rows.append([batch_size, name, f"{1000 * median:.1f}", f"{ratio:.2f}×"])
 
     md = (f"# Window sampling\n\nOne batch of chunk windows (K = {args.chunk_size}) of `{args.demos}` drawn as the "
           f"pretraining recipes draw it, the observation and goal images shifted together by up to {args.pad} px; "
           f"{args.threads} torch thread(s), {args.repeats} interleaved rounds; the last column is the median of the "
-          f"per-round ratios of the gather's time to the row's (the crop rows: to the gather crop alone).\n\n"
-          + markdown_table(["batch", "what", "median (ms)", "gather time / this"], rows) + "\n")
+          f"per-round ratios of the reference's time (`{REFERENCE}`: the pipeline before the slice crop and the "
+          f"shared instruction element) to the row's (the crop rows: of the gather crop alone).\n\n"
+          + markdown_table(["batch", "what", "median (ms)", "reference time / this"], rows) + "\n")
     write_results(args.name, {"demos": str(args.demos), "chunk_size": args.chunk_size, "pad": args.pad,
                               "threads": args.threads, "repeats": args.repeats, "rows": results}, md, args.out)
 

@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
+from tensordict import NonTensorStack, TensorDict
 from tensordict.nn import TensorDictModule
 
 from mmada_rl.data import BufferMismatchError, DemoBuffer, RandomShift, make_window_buffer
+from mmada_rl.data.buffer import InstructionLookup
 from mmada_rl.data.windows import LIFT_ACTION_DIM, grasp_holds, idle_actions
 from mmada_rl.data.collect import collect
 from mmada_rl.data.h5_import import import_h5
@@ -136,6 +137,22 @@ def test_window_sampler_never_mixes_episodes_on_real_demos(demo_dir):
     batch = _check_windows(DemoBuffer.open(demo_dir), chunk_size=5, num=300)
     assert batch[ACTION_IS_PAD_KEY].any()  # windows at the episode end are sampled too
     assert batch[INSTRUCTION_KEY][0].startswith("pick up")
+
+
+def test_instruction_lookup_gives_each_window_its_text():
+    """Each element of the stack is its window's text, also where the batch mixes instructions; one
+    element per distinct text, already on the batch's device, so setting the stack converts nothing."""
+    lookup = InstructionLookup(["pick up the cube", "push the cube"])
+    ids = torch.tensor([[1, 0, 1], [0, 0, 1]])
+    batch = lookup(TensorDict({"instruction_id": ids}, [2, 3], device="cpu"))
+    texts = batch.get(INSTRUCTION_KEY)
+    assert isinstance(texts, NonTensorStack) and texts.batch_size == (2, 3)
+    assert texts.tolist() == [[lookup.instructions[i] for i in row] for row in ids.tolist()]
+    assert texts[0, 1].device == torch.device("cpu")
+    assert batch[1:, 2].get(INSTRUCTION_KEY).tolist() == ["push the cube"]
+    assert lookup(TensorDict({"instruction_id": torch.tensor(1)}, []))[INSTRUCTION_KEY] == "push the cube"
+    single = lookup(TensorDict({"instruction_id": torch.zeros(4, dtype=torch.long)}, [4]))
+    assert single[INSTRUCTION_KEY] == ["pick up the cube"] * 4  # a list per window, as any stack
 
 
 def _offset_of(shifted: torch.Tensor, original: torch.Tensor, pad: int) -> set[tuple[int, int]]:

@@ -24,7 +24,7 @@ from typing import Iterator
 
 import numpy as np
 import torch
-from tensordict import NonTensorStack, TensorDict, TensorDictBase
+from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 from torchrl.envs.transforms import Transform
 
@@ -71,8 +71,15 @@ class InstructionLookup(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         ids = tensordict.get(INSTRUCTION_ID_KEY)
-        texts = [self.instructions[i] for i in ids.reshape(-1).tolist()]
-        stack = NonTensorStack(*texts).reshape(ids.shape) if ids.ndim else texts[0]
+        flat = ids.reshape(-1).tolist()
+        if not ids.ndim:
+            tensordict.set(INSTRUCTION_KEY, self.instructions[flat[0]])
+            return tensordict
+        # one element per distinct text, already on the tensordict's device: setting the stack then
+        # converts nothing (a conversion per window was most of this transform's time in a batch)
+        device = tensordict.device
+        texts = {i: NonTensorData(self.instructions[i], device=device) for i in set(flat)}
+        stack = NonTensorStack(*[texts[i] for i in flat]).reshape(ids.shape)
         tensordict.set(INSTRUCTION_KEY, stack)
         return tensordict
 
