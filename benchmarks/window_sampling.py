@@ -14,7 +14,8 @@ sets it (one element per distinct text, on the batch's device); with the
 lookup as it was before (a text per window, each converted to the batch's
 device when set); with both that and the single indexed gather over four index
 tensors that the crop used before (the reference: the pipeline before either
-change); and without a shift; then the two crops alone on the sampled images.
+change); and without a shift; then the two crops alone on the sampled images, and the two lookups alone on
+the sampled windows.
 Rows run interleaved, ``--repeats`` rounds; each ratio is the median of the
 per-round ratios to the reference. Both crops give the same images for the same
 random offsets, and both lookups the same texts (checked before timing).
@@ -128,9 +129,13 @@ def main(argv: list[str] | None = None) -> int:
                  for per_window in (False, True)]
         if texts[0] != texts[1]:
             raise RuntimeError("the two instruction lookups disagree on the same windows")
+        windows = pipelines["sample(), no shift, one text element"].sample().exclude(INSTRUCTION_KEY)
+        lookups = {"lookup alone, one text element": InstructionLookup(buffer.metadata.instructions),
+                   "lookup alone, a text per window (before)": PerWindowLookup(buffer.metadata.instructions)}
         jobs = {**{name: windows.sample for name, windows in pipelines.items()},
                 "crop alone, slice": lambda: random_shift(images, args.pad),
-                "crop alone, gather (before)": lambda: gather_shift(images, args.pad)}
+                "crop alone, gather (before)": lambda: gather_shift(images, args.pad),
+                **{name: (lambda lookup=lookup: lookup(windows.clone(False))) for name, lookup in lookups.items()}}
         for job in jobs.values():  # warm-up
             job()
         times = {name: [] for name in jobs}
@@ -138,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
             for name, job in jobs.items():
                 times[name].append(timed(job))
         for name, t in times.items():
-            reference = times["crop alone, gather (before)" if name.startswith("crop") else REFERENCE]
+            reference = times[{"crop": "crop alone, gather (before)",
+                               "lookup": "lookup alone, a text per window (before)"}.get(name.split()[0], REFERENCE)]
             median = statistics.median(t)
             ratio = statistics.median(r / x for x, r in zip(t, reference))
             results.append({"batch_size": batch_size, "name": name, "seconds": t, "median_s": median,
@@ -149,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
           f"pretraining recipes draw it, the observation and goal images shifted together by up to {args.pad} px; "
           f"{args.threads} torch thread(s), {args.repeats} interleaved rounds; the last column is the median of the "
           f"per-round ratios of the reference's time (`{REFERENCE}`: the pipeline before the slice crop and the "
-          f"shared instruction element) to the row's (the crop rows: of the gather crop alone).\n\n"
+          f"shared instruction element) to the row's (the crop rows: of the gather crop alone; the lookup rows: of the "
+          f"earlier lookup alone).\n\n"
           + markdown_table(["batch", "what", "median (ms)", "reference time / this"], rows) + "\n")
     write_results(args.name, {"demos": str(args.demos), "chunk_size": args.chunk_size, "pad": args.pad,
                               "threads": args.threads, "repeats": args.repeats, "rows": results}, md, args.out)
