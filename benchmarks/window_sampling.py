@@ -14,12 +14,13 @@ sets it (one element per distinct text, on the batch's device); with the
 lookup as it was before (a text per window, each converted to the batch's
 device when set); with both that and the single indexed gather over four index
 tensors that the crop used before (the reference: the pipeline before either
-change); and without a shift; then the two crops alone on the sampled images, and the two lookups alone on
-the sampled windows.
-Rows run interleaved, ``--repeats`` rounds, each round starting one row further
-on (the pipelines draw the same windows, which the first to read them reads
-cold); each ratio is the median of the per-round ratios to the reference. Both crops give the same images for the same
-random offsets, and both lookups the same texts (checked before timing).
+change); and without a shift; then the two crops alone on the sampled images,
+and the two lookups alone on the sampled windows. Rows run interleaved,
+``--repeats`` rounds, each round starting one row further on (the pipelines
+draw the same windows, which the first to read them reads cold); each ratio is
+the median of the per-round ratios to the reference. Both crops give the same
+images for the same random offsets, and both lookups the same texts (checked
+before timing).
 
 Writes ``benchmarks/results/<name>.{json,md,png}`` (default ``window_sampling``).
 """
@@ -78,7 +79,7 @@ def pipeline(buffer, args, batch_size: int, shift: RandomShift | None, per_windo
     """The recipes' window buffer with ``shift`` appended, optionally with the earlier instruction lookup."""
     windows = make_window_buffer(buffer, args.chunk_size, batch_size, seed=args.seed)
     if per_window_lookup:
-        lookups = windows._transform.transforms
+        lookups = windows.transform.transforms
         (position,) = [i for i, t in enumerate(lookups) if isinstance(t, InstructionLookup)]
         lookups[position] = PerWindowLookup(lookups[position].instructions)
     if shift is not None:
@@ -130,13 +131,13 @@ def main(argv: list[str] | None = None) -> int:
                  for per_window in (False, True)]
         if texts[0] != texts[1]:
             raise RuntimeError("the two instruction lookups disagree on the same windows")
-        windows = pipelines["sample(), no shift, one text element"].sample().exclude(INSTRUCTION_KEY)
+        batch = pipelines["sample(), no shift, one text element"].sample().exclude(INSTRUCTION_KEY)
         lookups = {"lookup alone, one text element": InstructionLookup(buffer.metadata.instructions),
                    "lookup alone, a text per window (before)": PerWindowLookup(buffer.metadata.instructions)}
         jobs = {**{name: windows.sample for name, windows in pipelines.items()},
                 "crop alone, slice": lambda: random_shift(images, args.pad),
                 "crop alone, gather (before)": lambda: gather_shift(images, args.pad),
-                **{name: (lambda lookup=lookup: lookup(windows.clone(False))) for name, lookup in lookups.items()}}
+                **{name: (lambda lookup=lookup: lookup(batch.clone(False))) for name, lookup in lookups.items()}}
         for job in jobs.values():  # warm-up
             job()
         times = {name: [] for name in jobs}
@@ -158,10 +159,10 @@ def main(argv: list[str] | None = None) -> int:
 
     md = (f"# Window sampling\n\nOne batch of chunk windows (K = {args.chunk_size}) of `{args.demos}` drawn as the "
           f"pretraining recipes draw it, the observation and goal images shifted together by up to {args.pad} px; "
-          f"{args.threads} torch thread(s), {args.repeats} interleaved rounds, each starting one row further on; the last column is the median of the "
-          f"per-round ratios of the reference's time (`{REFERENCE}`: the pipeline before the slice crop and the "
-          f"shared instruction element) to the row's (the crop rows: of the gather crop alone; the lookup rows: of the "
-          f"earlier lookup alone).\n\n"
+          f"{args.threads} torch thread(s), {args.repeats} interleaved rounds, each starting one row further on; "
+          f"the last column is the median of the per-round ratios of the reference's time (`{REFERENCE}`: the "
+          f"pipeline before the slice crop and the shared instruction element) to the row's (the crop rows: of the "
+          f"gather crop alone; the lookup rows: of the earlier lookup alone).\n\n"
           + markdown_table(["batch", "what", "median (ms)", "reference time / this"], rows) + "\n")
     write_results(args.name, {"demos": str(args.demos), "chunk_size": args.chunk_size, "pad": args.pad,
                               "threads": args.threads, "repeats": args.repeats, "rows": results}, md, args.out)
