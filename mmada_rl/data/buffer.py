@@ -24,11 +24,12 @@ from typing import Iterator
 
 import numpy as np
 import torch
-from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, TensorDictReplayBuffer
 from torchrl.envs.transforms import Transform
 
 from mmada_rl.data.metadata import METADATA_FILE, BufferMetadata
+from mmada_rl.instructions import instruction_entry
 from mmada_rl.keys import (
     ACTION_KEY,
     EPISODE_KEY,
@@ -71,18 +72,9 @@ class InstructionLookup(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         ids = tensordict.get(INSTRUCTION_ID_KEY)
-        flat = ids.reshape(-1).tolist()
-        if not ids.ndim:
-            tensordict.set(INSTRUCTION_KEY, self.instructions[flat[0]])
-            return tensordict
-        # one element per distinct text, already on the tensordict's device: setting the stack then
-        # converts nothing (a conversion per window was most of this transform's time in a batch)
-        device = tensordict.device
-        texts = {i: NonTensorData(self.instructions[i], device=device) for i in set(flat)}
-        stack = NonTensorStack(*[texts[i] for i in flat]).reshape(ids.shape)
-        tensordict.set(INSTRUCTION_KEY, stack)
+        texts = instruction_entry(self.instructions, ids.reshape(-1).tolist(), ids.shape, tensordict.device)
+        tensordict.set(INSTRUCTION_KEY, texts)
         return tensordict
-
 
 
 class DemoBuffer:

@@ -1,10 +1,11 @@
 """A transform that writes the task's instruction into every reset and step."""
 from __future__ import annotations
 
-from tensordict import NonTensorData, NonTensorStack, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import Composite, NonTensor
 from torchrl.envs.transforms import Transform
 
+from mmada_rl.instructions import instruction_entry
 from mmada_rl.keys import INSTRUCTION_KEY
 
 
@@ -25,13 +26,10 @@ class InstructionTransform(Transform):
         super().__init__(in_keys=[], out_keys=[INSTRUCTION_KEY])
         self.instruction = instruction
 
-    def _value(self, batch_size):
-        if not batch_size:
-            return NonTensorData(self.instruction)
-        return NonTensorStack(*[NonTensorData(self.instruction)] * batch_size.numel()).reshape(batch_size)
-
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(INSTRUCTION_KEY, self._value(next_tensordict.batch_size))
+        shape = next_tensordict.batch_size
+        value = instruction_entry([self.instruction], [0] * shape.numel(), shape, next_tensordict.device)
+        next_tensordict.set(INSTRUCTION_KEY, value)
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:

@@ -27,7 +27,7 @@ from typing import Iterator, NamedTuple
 
 import torch
 from safetensors.torch import load_file, save_file
-from tensordict import NonTensorData, NonTensorStack, TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
 from mmada_rl.data.windows import append_state_differences, check_state_differences, kept_state_dims, pad_state
@@ -36,6 +36,7 @@ from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.path import DecodingPath
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig, is_greedy
 from mmada_rl.envs.maniskill import EnvConfig, task_camera_fov
+from mmada_rl.instructions import instruction_texts
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
     ACTION_IS_PAD_KEY,
@@ -163,18 +164,7 @@ class PolicyOutput(NamedTuple):
 
 def instructions_of(td: TensorDictBase) -> list[str]:
     """The instruction texts of a tensordict, one per batch element."""
-    value = td.get(INSTRUCTION_KEY)
-    if isinstance(value, NonTensorStack):
-        texts = value.tolist()
-    elif isinstance(value, NonTensorData):
-        texts = value.data
-    else:
-        texts = value
-    texts = [texts] if isinstance(texts, str) else list(texts)
-    n = td.batch_size.numel() if td.batch_size else 1
-    if len(texts) == 1 and n > 1:
-        texts = texts * n
-    return texts
+    return instruction_texts(td.get(INSTRUCTION_KEY), td.batch_size)
 
 
 class MMaDAModel(nn.Module):

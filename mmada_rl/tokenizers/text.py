@@ -20,10 +20,11 @@ from dataclasses import dataclass, field
 from typing import Iterable, NamedTuple, Sequence
 
 import torch
-from tensordict import NonTensorData, NonTensorStack, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
+from mmada_rl.instructions import instruction_texts
 from mmada_rl.keys import INSTRUCTION_KEY, INSTRUCTION_TOKENS_KEY
 from mmada_rl.tokenizers.io import TokenizerIOMixin
 
@@ -169,22 +170,8 @@ class TextTokenizer(TokenizerIOMixin, TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Writes the ids of ``td[in_key]`` (str or stack of str) to ``td[out_key]``, ``[*B, max_len]``."""
         batch = tensordict.batch_size
-        value = tensordict.get(self.in_keys[0])
-        if isinstance(value, NonTensorStack):
-            value = value.tolist()
-        elif isinstance(value, NonTensorData):
-            value = value.data
-        texts = _flatten(value)
-        if len(texts) == 1 and batch.numel() != 1:
-            texts = texts * batch.numel()  # one instruction shared by the whole batch
-        if len(texts) != batch.numel():
-            raise ValueError(f"got {len(texts)} instructions for a tensordict of batch size {tuple(batch)}.")
+        texts = instruction_texts(tensordict.get(self.in_keys[0]), batch)
         ids = self.encode(texts).ids.reshape(*batch, self.max_len)
         tensordict.set(self.out_keys[0], ids)
         return tensordict
 
-
-def _flatten(value) -> list[str]:
-    if isinstance(value, str):
-        return [value]
-    return [text for item in value for text in _flatten(item)]
