@@ -1,7 +1,7 @@
 """The instruction texts of a tensordict, written and read in one way.
 
 TorchRL's VLA schema keeps the instruction at ``language_instruction`` as a
-string, or a ``NonTensorStack`` of strings for a batch. Three places write it
+string, or a ``NonTensorStack`` of strings for a batch. Two places write it
 (the environment's :class:`~mmada_rl.envs.instruction.InstructionTransform`,
 the demonstration buffer's :class:`~mmada_rl.data.buffer.InstructionLookup`)
 and two read it (the text tokenizer, the model); the helpers here are what they share.
