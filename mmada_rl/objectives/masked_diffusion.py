@@ -216,8 +216,9 @@ class MaskedDiffusionLoss(LossModule):
             gaussian_bin_targets(num_bins, float(action_label_sigma)).to(device) if action_label_sigma > 0 else None
         ), persistent=False)
         #: each target position's index in ``layout.target_positions``, the order of the cached pass's outputs
-        self._target_index = torch.full((self.layout.length,), -1, dtype=torch.long)
-        self._target_index[self.layout.target_positions] = torch.arange(self.layout.num_targets)
+        target_index = torch.full((self.layout.length,), -1, dtype=torch.long)
+        target_index[self.layout.target_positions] = torch.arange(self.layout.num_targets)
+        self.register_buffer("_target_index", target_index.to(device), persistent=False)
         #: Optional RNG of the forward process (None: torch's global RNG).
         self.generator: torch.Generator | None = None
 
@@ -334,7 +335,7 @@ class MaskedDiffusionLoss(LossModule):
                 if copies > 1:
                     cache = cache.repeat_interleave(copies)
                 hidden = net.encode_targets(noisy, noise_level, cache)  # (B*C, T, D), in target_positions order
-                logits = net.project(hidden[rows, self._target_index.to(device)[cols]], cols)  # (M, V)
+                logits = net.project(hidden[rows, self._target_index[cols]], cols)  # (M, V)
             else:
                 hidden = net.encode(noisy, noise_level, rows_visual)  # (B*C, L, D)
                 logits = net.project(hidden[rows, cols], cols)  # (M, V)
