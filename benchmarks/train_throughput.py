@@ -5,7 +5,7 @@
         --variant 'cnn only, 4x4 goal=runs/tok100_g4/tokenizers={"observation_tokens": false}' --bc
 
 On these CPUs the masked-diffusion policy and the BC baseline fit the same
-demonstrations about equally well per update (README, "Why PickCube-v1 fails"),
+demonstrations about equally well per update (docs/results/pretraining.md, "Why PickCube-v1 fails"),
 but one update of the policy costs many of BC's: the sequence length and the
 width of the denoiser set the price. This measures one full training step —
 ``loss_inputs`` → masked-diffusion loss → backward → AdamW — of every
@@ -56,8 +56,8 @@ def parse_variant(text: str) -> tuple[str, Path, dict]:
     return parts[0], Path(parts[1]), fields
 
 
-#: What every variant starts from: the recipe's PickCube-v1 configuration (maniskill.yaml and the README's
-#: random-shift runs): the small denoiser cross-attending to its own CNN features of the image.
+#: What every variant starts from: the recipe's PickCube-v1 configuration (maniskill.yaml and the
+#: random-shift runs of docs/results/pretraining.md): the small denoiser cross-attending to its own CNN features of the image.
 BASE_FIELDS = {"chunk_size": 5, "denoiser": "small",
                "denoiser_overrides": {"cross_attention_to_visual": True, "visual_encoder_channels": [32, 64, 128]}}
 

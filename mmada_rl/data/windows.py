@@ -21,7 +21,7 @@ into one training sample:
 starts in an episode's leading run of hold actions (every entry but the last,
 the gripper, ~0): ManiSkill's PushCube-v1 planner records 7 such steps before
 it moves, so a short chunk taken there teaches the policy to hold still in the
-start pose, which it then never leaves (see the README's chunk-size ablation).
+start pose, which it then never leaves (see the chunk-size ablation in docs/results/pretraining.md).
 ``skip_pauses=ε`` draws no window that starts at *any* step whose arm action is
 within ``ε`` of 0: the PickCube-v1 planner also nearly stops (arm actions
 ~0.01) for the ~6 steps in which it closes the gripper and between its motion

@@ -2,7 +2,7 @@
 
 The image tokens of the sequence summarise each 8x8-pixel patch by one VQ code,
 fitted to reconstruct pixels; a few-pixel cube can vanish from them (see the
-README's PushCube and PickCube analyses). :class:`ConvPatchEncoder` gives the
+PushCube and PickCube analyses in docs/results/pretraining.md). :class:`ConvPatchEncoder` gives the
 denoiser a second, continuous view of the same observation: a small strided
 CNN, trained end to end with the denoiser, whose last feature map becomes
 ``N = (H / 2**n) * (W / 2**n)`` feature vectors, each with a fixed 2-D sin-cos

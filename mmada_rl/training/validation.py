@@ -4,7 +4,7 @@ The pretraining recipe reports these on a held-out buffer while it trains
 (``validation.dir``), so overfitting shows as it happens: on PickCube-v1 the
 masked-diffusion policy's chunk error on its training windows keeps falling
 while the error on unseen demonstrations stops falling and the action
-cross-entropy there rises (README, "Why PickCube-v1 fails").
+cross-entropy there rises (docs/results/pretraining.md, "Why PickCube-v1 fails").
 ``benchmarks/demo_fit.py`` reports the same quantities for saved checkpoints.
 
 * :func:`masked_token_scores` — accuracy and cross-entropy of the masked action
