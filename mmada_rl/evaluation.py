@@ -36,6 +36,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -51,6 +52,7 @@ from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.envs.tasks import task_spec
 from mmada_rl.keys import IMAGE_KEY, STEP_KEY, SUCCESS_KEY
 from mmada_rl.policy.actor import PREDICTED_GOAL_IMAGE_KEY, MMaDAActor
+from mmada_rl.policy.ensemble import MMaDAEnsemble
 from mmada_rl.policy.execution import ExecutionNoise, PolicyEnv, make_policy_env
 from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
@@ -212,17 +214,28 @@ class EvalResult:
         return "\n".join(lines)
 
 
-def load_actor(model: MMaDAModel | TensorDictModuleBase | str | Path, device: str = "cpu") -> TensorDictModuleBase:
-    """The chunk actor of a policy: an :class:`MMaDAActor` for an MMaDA-VLA model, the
-    baseline itself otherwise (an RL baseline's actor as a one-step chunk policy); loaded
-    first when given as a run, checkpoint or model directory."""
-    if not isinstance(model, (MMaDAModel, TensorDictModuleBase)):
+def load_actor(model: MMaDAModel | MMaDAEnsemble | TensorDictModuleBase | str | Path | Sequence[str | Path],
+               device: str = "cpu") -> TensorDictModuleBase:
+    """The chunk actor of a policy: an :class:`MMaDAActor` for an MMaDA-VLA model or an
+    :class:`MMaDAEnsemble`, the baseline itself otherwise (an RL baseline's actor as a one-step
+    chunk policy); loaded first when given as a run, checkpoint or model directory, and a list
+    of two or more such directories of MMaDA-VLA policies is loaded as their ensemble."""
+    if isinstance(model, (list, tuple)):
+        if len(model) == 1:
+            model = model[0]
+        else:
+            directories = [resolve_model_dir(d) for d in model]
+            others = [str(d) for d in directories if not (d / MODEL_CONFIG).is_file()]
+            if others:
+                raise ValueError(f"an ensemble is of MMaDA-VLA policies; these are not: {', '.join(others)}.")
+            model = MMaDAEnsemble.load(directories, device=device)
+    if not isinstance(model, (MMaDAModel, MMaDAEnsemble, TensorDictModuleBase)):
         directory = resolve_model_dir(model)
         if (directory / MODEL_CONFIG).is_file():
             model = MMaDAModel.load(directory, device=device)
         else:
             model = load_rl_actor(directory, device=device) if is_rl_agent_dir(directory) else load_policy(directory, device=device)
-    return MMaDAActor(model) if isinstance(model, MMaDAModel) else model
+    return MMaDAActor(model) if isinstance(model, (MMaDAModel, MMaDAEnsemble)) else model
 
 
 def _image_size(actor) -> int | None:
@@ -284,7 +297,7 @@ def _run_episode(penv: PolicyEnv, seed: int, max_decisions: int, stages: tuple[s
 
 
 def evaluate(
-    model: MMaDAModel | TensorDictModuleBase | str | Path,
+    model: MMaDAModel | MMaDAEnsemble | TensorDictModuleBase | str | Path | Sequence[str | Path],
     task: str,
     episodes: int = 50,
     *,
@@ -311,7 +324,9 @@ def evaluate(
         model: the policy: an :class:`MMaDAModel` or its :class:`MMaDAActor`, a
             baseline policy (:mod:`mmada_rl.baselines`) or any chunk actor (see the
             module docstring), or a directory saved by ``MMaDAModel.save`` or a
-            baseline's ``save`` (or a checkpoint directory holding one under ``model/``).
+            baseline's ``save`` (or a checkpoint directory holding one under ``model/``);
+            an :class:`~mmada_rl.policy.MMaDAEnsemble` or a list of two or more MMaDA-VLA
+            policy directories: their ensemble (greedy only).
         task: ManiSkill3 task id.
         episodes: evaluation episodes (seeds :func:`eval_seeds`).
         seed_offset: first evaluation seed is ``EVAL_SEED_BASE + seed_offset``.
@@ -358,6 +373,8 @@ def evaluate(
                           stage_flags=True)
     stages = task_spec(task).stages
     mmada = actor.model if isinstance(actor, MMaDAActor) else None
+    if sample_temperature is not None and isinstance(mmada, MMaDAEnsemble):
+        raise ValueError("an ensemble decodes greedily only: sample_temperature applies to one policy at a time.")
     if sample_temperature is not None and (mmada is None or not sample_temperature > 0):
         raise ValueError("sample_temperature needs an MMaDA-VLA policy and a value > 0 "
                          f"(got {sample_temperature!r} for a {type(actor).__name__}).")
@@ -427,7 +444,7 @@ def evaluate(
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
         action_noise=float(action_noise or 0.0),
         action_readout=readout,
-        checkpoint=str(model) if isinstance(model, (str, Path)) else None,
+        checkpoint=_checkpoint_label(model),
         demo_seeds=None if demo_seeds is None else str(demo_seeds),
         stages={flag: sum(r.stages[flag] for r in results) / n for flag in stages},
     )  # fmt: skip
@@ -435,6 +452,15 @@ def evaluate(
         metrics.files = _write_outputs(Path(out_dir), metrics, frames if video else None,
                                        (first_episode.decisions, first_episode.frames, actor.chunk_size) if goal_grid else None)
     return metrics
+
+
+def _checkpoint_label(model) -> str | None:
+    """The policy's path(s) when given as such (provenance in eval.json): an ensemble's joined by " + "."""
+    if isinstance(model, (str, Path)):
+        return str(model)
+    if isinstance(model, (list, tuple)) and all(isinstance(m, (str, Path)) for m in model):
+        return " + ".join(str(m) for m in model)
+    return None
 
 
 # -- outputs ----------------------------------------------------------------------
@@ -504,9 +530,12 @@ def add_parser(sub) -> None:
     """Register ``mmada-rl eval``."""
     p = sub.add_parser("eval", help="evaluate a saved policy on a ManiSkill3 task (success rates with 95%% CIs)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="directory saved by MMaDAModel.save or by a baseline's save "
+    p.add_argument("--checkpoint", required=True, nargs="+", metavar="CHECKPOINT",
+                   help="directory saved by MMaDAModel.save or by a baseline's save "
                    "(recipes/baselines: BC, Diffusion Policy, and the RL baselines' actors), a checkpoint directory "
-                   "with one under model/, or a run directory (its newest checkpoint).")
+                   "with one under model/, or a run directory (its newest checkpoint). Two or more MMaDA-VLA "
+                   "policies (e.g. the same recipe's training seeds) are evaluated as one ensemble: each decodes "
+                   "its chunk greedily and the mean chunk runs, grippers by majority (MMaDAEnsemble).")
     p.add_argument("--task", required=True, help="ManiSkill3 task id, e.g. PickCube-v1.")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes (default: %(default)s).")
     p.add_argument("--seed-offset", type=int, default=0, help=f"first env seed is {EVAL_SEED_BASE} + this (default: %(default)s).")
@@ -534,7 +563,8 @@ def add_parser(sub) -> None:
     p.add_argument("--device", default="cpu", help="torch device of the model (default: %(default)s).")
     p.add_argument("--num-threads", type=int, default=1,
                    help="torch CPU threads; 1 leaves the cores to SAPIEN's CPU renderer (default: %(default)s).")
-    p.add_argument("--out", default=None, help="output directory for eval.json / eval.md (default: CHECKPOINT/eval).")
+    p.add_argument("--out", default=None, help="output directory for eval.json / eval.md (default: CHECKPOINT/eval; "
+                   "for an ensemble, the first CHECKPOINT's eval_ensemble).")
     p.add_argument("--video", action="store_true", help="save every episode as MP4 (GIF without imageio-ffmpeg).")
     p.add_argument("--goal-grid", action="store_true", help="save a PNG of predicted goal images beside the real frames.")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar.")
@@ -548,14 +578,15 @@ def _run_eval(args: argparse.Namespace) -> int:
     # measured on 2 busy cores: a tiny model decodes a chunk in ~15 ms with 1 thread, ~450 ms with 2
     torch.set_num_threads(args.num_threads)
     try:
-        model_dir = resolve_model_dir(args.checkpoint)
+        model_dirs = [resolve_model_dir(c) for c in args.checkpoint]
+        default_out = Path(args.checkpoint[0]) / ("eval" if len(model_dirs) == 1 else "eval_ensemble")
         result = evaluate(
-            model_dir, args.task, args.episodes, seed_offset=args.seed_offset, demo_seeds=args.demo_seeds,
+            model_dirs[0] if len(model_dirs) == 1 else model_dirs, args.task, args.episodes, seed_offset=args.seed_offset, demo_seeds=args.demo_seeds,
             execute_steps=args.execute_steps,
             temporal_ensemble=args.temporal_ensemble, num_denoise_steps=args.num_denoise_steps,
             sample_temperature=args.sample_temperature, action_noise=args.action_noise,
             action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
-            out_dir=args.out or Path(args.checkpoint) / "eval", video=args.video, goal_grid=args.goal_grid,
+            out_dir=args.out or default_out, video=args.video, goal_grid=args.goal_grid,
             device=args.device, progress=not args.no_progress,
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as err:

@@ -1,0 +1,138 @@
+"""Several MMaDA-VLA policies acting as one: each decodes its chunk, the executed chunk is their average.
+
+Policies trained on the same few demonstrations with different seeds fail on different
+episodes: each fits the demonstrations a little differently. A deep ensemble (Lakshminarayanan
+et al., 2017) averages their predictions; here each member decodes its chunk greedily from the
+same observation, read out its own way (``"mean"`` or ``"token"``, :class:`MMaDAConfig`), and the
+chunk executed is the mean of the members' chunks, with each gripper dimension set by the
+members' majority (a gripper is -1 or +1, never between; a tie takes the first member's).
+
+An :class:`MMaDAEnsemble` stands where an :class:`MMaDAModel` does for evaluation: wrap it in an
+:class:`~mmada_rl.policy.MMaDAActor` (``mmada-rl eval --checkpoint RUN_A RUN_B RUN_C`` does), and
+:meth:`decoding` sets the decoding steps and read-out of every member. It decodes greedily only
+and has no decoding path of its own (the averaged chunk is no member's sample), so it cannot be
+fine-tuned: sampled decoding and decoding-path log-probabilities raise.
+
+    >>> ensemble = MMaDAEnsemble.load(["runs/pick_s0", "runs/pick_s1", "runs/pick_s2"])  # doctest: +SKIP
+    >>> chunk = MMaDAActor(ensemble)(env.reset())["vla_action", "chunk"]  # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+
+from mmada_rl.diffusion.sampler import is_greedy
+from mmada_rl.policy.model import MMaDAModel, PolicyOutput
+
+__all__ = ["MMaDAEnsemble"]
+
+
+class MMaDAEnsemble(nn.Module):
+    """Greedy MMaDA-VLA policies averaged chunk by chunk (see the module docstring).
+
+    Args:
+        members: two or more policies that act in the same action space from the same
+            observations: the same chunk size, action dimension, image size and cameras,
+            all reading the state or none. Their tokenizers may differ (each decodes
+            its own tokens). The first member's goal image and decoding path are
+            reported with each chunk.
+    """
+
+    def __init__(self, members: Sequence[MMaDAModel]) -> None:
+        super().__init__()
+        members = list(members)
+        if len(members) < 2 or not all(isinstance(m, MMaDAModel) for m in members):
+            raise ValueError(f"an ensemble needs two or more MMaDAModel members, got {[type(m).__name__ for m in members]}.")
+        self.members = nn.ModuleList(members)
+        lead = members[0]
+        for i, other in enumerate(members[1:], start=1):
+            for what, mine, theirs in (
+                ("chunk size", lead.config.chunk_size, other.config.chunk_size),
+                ("action dimension", lead.action_tokenizer.action_dim, other.action_tokenizer.action_dim),
+                ("gripper dimensions", lead.action_tokenizer.config.gripper_dims, other.action_tokenizer.config.gripper_dims),
+                ("image size", lead.image_size, other.image_size),
+                ("cameras (camera_fov)", lead.config.camera_fov, other.config.camera_fov),
+                ("reads the state", lead.proprio_tokenizer is not None, other.proprio_tokenizer is not None),
+            ):
+                if mine != theirs:
+                    raise ValueError(f"ensemble members must act alike: member 0 has {what} {mine!r}, member {i} {theirs!r}.")
+
+    @classmethod
+    def load(cls, directories: Sequence[str | Path], *, device: str | torch.device = "cpu") -> MMaDAEnsemble:
+        """The ensemble of the policies saved in ``directories`` (each as :meth:`MMaDAModel.load` takes it)."""
+        return cls([MMaDAModel.load(d, device=device) for d in directories])
+
+    # -- what MMaDAActor and evaluation read: the first member's, checked alike above ----------
+    @property
+    def lead(self) -> MMaDAModel:
+        return self.members[0]
+
+    @property
+    def config(self):
+        return self.lead.config
+
+    @property
+    def action_tokenizer(self):
+        return self.lead.action_tokenizer
+
+    @property
+    def proprio_tokenizer(self):
+        return self.lead.proprio_tokenizer
+
+    @property
+    def denoiser(self) -> nn.Module:
+        return self.lead.denoiser
+
+    @property
+    def image_size(self) -> int:
+        return self.lead.image_size
+
+    @property
+    def sampler(self):
+        return self.lead.sampler
+
+    @property
+    def action_readout(self) -> str:
+        """The members' read-out when they share one, else ``"mixed"``."""
+        readouts = {m.action_readout for m in self.members}
+        return readouts.pop() if len(readouts) == 1 else "mixed"
+
+    @contextlib.contextmanager
+    def decoding(self, *, num_steps: int | None = None, temperature: float | None = None,
+                 readout: str | None = None) -> Iterator[MMaDAEnsemble]:
+        """:meth:`MMaDAModel.decoding` for every member at once."""
+        with contextlib.ExitStack() as stack:
+            for member in self.members:
+                stack.enter_context(member.decoding(num_steps=num_steps, temperature=temperature, readout=readout))
+            yield self
+
+    # -- acting -------------------------------------------------------------------------------
+    @torch.no_grad()
+    def act(self, td: TensorDictBase, *, greedy: bool | None = None, generator: torch.Generator | None = None,
+            decode_goal: bool = True) -> PolicyOutput:
+        """The members' greedy chunks ``[B, K, A]`` averaged, grippers by majority; the rest is the first member's.
+
+        ``action_tokens`` are the first member's tokenizer's encoding of the averaged chunk and
+        ``log_prob`` is NaN: no decoding path produced that chunk."""
+        if not is_greedy(greedy):
+            raise ValueError("an MMaDAEnsemble decodes greedily only: its averaged chunk is no member's sample "
+                             "(evaluate its members one by one with sample_temperature).")
+        outputs = [m.act(td, greedy=True, decode_goal=decode_goal and i == 0) for i, m in enumerate(self.members)]
+        chunks = torch.stack([out.chunk for out in outputs])  # (M, B, K, A)
+        chunk = chunks.mean(0)  # (B, K, A)
+        grippers = list(self.action_tokenizer.config.gripper_dims)
+        if grippers:
+            vote = chunks[..., grippers].sign().sum(0)  # (B, K, G): +M all open ... -M all closed
+            chunk[..., grippers] = torch.where(vote == 0, chunks[0][..., grippers], vote.sign())
+        first = outputs[0]
+        tokens = self.action_tokenizer.encode(chunk).to(first.action_tokens)
+        return first._replace(chunk=chunk, action_tokens=tokens, log_prob=torch.full_like(first.log_prob, float("nan")))
+
+    def visual_input(self, td: TensorDictBase):
+        raise NotImplementedError("an MMaDAEnsemble has no decoding-path likelihood: its chunk is an average, "
+                                  "not a sample of one denoiser (fine-tune its members one by one).")

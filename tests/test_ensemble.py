@@ -1,0 +1,102 @@
+"""``MMaDAEnsemble``: several policies' greedy chunks averaged, evaluated as one policy."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mmada_rl.cli import main
+from mmada_rl.evaluation import evaluate
+from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, ACTION_TOKENS_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
+from mmada_rl.policy import MMaDAActor, MMaDAEnsemble, PolicyOutput
+from test_actor import CHUNK, LOG_PROBS_KEY, build_tiny_model, env, observations  # noqa: F401 (fixtures)
+
+pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
+GRIPPER = 6  # PickCube-v1's pd_ee_delta_pose: 6 arm dimensions, then the gripper
+
+
+def tiny_members(observations, count: int = 3, **config) -> list:
+    """``count`` tiny bin-token policies on the same observations, each initialised from its own seed."""
+    members = []
+    for seed in range(count):
+        torch.manual_seed(seed)
+        members.append(build_tiny_model(observations[IMAGE_KEY], observations[STATE_KEY], torch.rand(64, 7) * 2 - 1,
+                                        observations[INSTRUCTION_KEY][0], action_tokens="bins", **config))
+    return members
+
+
+def test_the_ensemble_executes_the_members_mean_chunk_with_grippers_by_majority(observations):
+    members = tiny_members(observations, action_readout="mean")
+    batch = observations[:4]
+    chunks = torch.stack([MMaDAActor(m)(batch.clone())[ACTION_CHUNK_KEY] for m in members])  # (3, 4, K, 7)
+    out = MMaDAActor(MMaDAEnsemble(members), execute_steps=2)(batch.clone())
+    chunk = out[ACTION_CHUNK_KEY]
+    assert chunk.shape == (4, CHUNK, 7)
+    torch.testing.assert_close(chunk[..., :GRIPPER], chunks[..., :GRIPPER].mean(0))
+    assert set(chunks[..., GRIPPER].unique().tolist()) <= {-1.0, 1.0}  # each member's gripper is open or closed
+    assert torch.equal(chunk[..., GRIPPER], chunks[..., GRIPPER].sum(0).sign())  # three votes: never a tie
+    assert not torch.equal(chunks[0], chunks[1])  # the members do disagree, so the average is not one of them
+    torch.testing.assert_close(out[ACTION_KEY], chunk[:, :2])
+    assert torch.equal(out[ACTION_TOKENS_KEY], members[0].action_tokenizer.encode(chunk))  # the executed chunk's codes
+    assert torch.isnan(out[LOG_PROBS_KEY]).all()  # no decoding path produced an average
+
+
+def test_a_gripper_tie_takes_the_first_members_gripper(observations, monkeypatch):
+    members = tiny_members(observations, count=2)
+    arm = torch.tensor([[0.2, -0.4, 0.0, 0.1, 0.0, 0.3], [0.4, 0.0, 0.2, -0.1, 0.0, 0.1]])  # member 0, member 1
+
+    def fixed(index: int, grippers: list[float]):
+        def act(td, *, greedy=None, generator=None, decode_goal=True):
+            chunk = torch.cat([arm[index].expand(CHUNK, 6), torch.tensor(grippers)[:, None]], -1)[None]  # (1, K, 7)
+            real = type(members[index]).act(members[index], td, greedy=greedy, decode_goal=decode_goal)
+            return real._replace(chunk=chunk)
+        return act
+
+    monkeypatch.setattr(members[0], "act", fixed(0, [1.0, 1.0, -1.0, -1.0, 1.0][:CHUNK]))
+    monkeypatch.setattr(members[1], "act", fixed(1, [1.0, -1.0, 1.0, -1.0, -1.0][:CHUNK]))
+    output = MMaDAEnsemble(members).act(observations[:1], greedy=True)
+    assert isinstance(output, PolicyOutput)
+    torch.testing.assert_close(output.chunk[0, :, :GRIPPER], arm.mean(0).expand(CHUNK, 6))
+    assert output.chunk[0, :, GRIPPER].tolist() == [1.0, 1.0, -1.0, -1.0, 1.0][:CHUNK]  # agreed, or member 0's
+
+
+def test_decoding_settings_reach_every_member_and_only_greedy_decoding_runs(observations):
+    members = tiny_members(observations, count=2)
+    ensemble = MMaDAEnsemble(members)
+    own = [m.sampler for m in members]
+    with ensemble.decoding(num_steps=1, readout="mean"):
+        assert all(m.sampler.config.num_steps == 1 and m.action_readout == "mean" for m in members)
+        assert ensemble.action_readout == "mean"
+    assert [m.sampler for m in members] == own and ensemble.action_readout == "token"
+    actor = MMaDAActor(ensemble)
+    with set_exploration_type(ExplorationType.RANDOM), pytest.raises(ValueError, match="decodes greedily only"):
+        actor(observations[:2].clone())
+    with pytest.raises(ValueError, match="greedily only"):
+        evaluate(ensemble, "PickCube-v1", 1, sample_temperature=1.0, progress=False)
+    with pytest.raises(NotImplementedError, match="no decoding-path likelihood"):
+        actor.log_prob(actor(observations[:2].clone()))
+
+
+def test_members_must_act_alike(observations):
+    members = tiny_members(observations, count=2)
+    with pytest.raises(ValueError, match="two or more"):
+        MMaDAEnsemble(members[:1])
+    torch.manual_seed(0)
+    shorter = build_tiny_model(observations[IMAGE_KEY], observations[STATE_KEY], torch.rand(64, 7) * 2 - 1,
+                               observations[INSTRUCTION_KEY][0], action_tokens="bins", chunk_size=CHUNK - 1)
+    with pytest.raises(ValueError, match=f"member 0 has chunk size {CHUNK}, member 1 {CHUNK - 1}"):
+        MMaDAEnsemble([members[0], shorter])
+
+
+def test_mmada_rl_eval_runs_several_checkpoints_as_one_ensemble(observations, tmp_path, capsys):
+    dirs = [m.save(tmp_path / f"seed{i}" / "model") for i, m in enumerate(tiny_members(observations, count=2))]
+    code = main(["eval", "--checkpoint", str(dirs[0].parent), str(dirs[1].parent), "--task", "PickCube-v1",
+                 "--episodes", "1", "--max-episode-steps", "4", "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    saved = json.loads((dirs[0].parent / "eval_ensemble" / "eval.json").read_text())  # not the member's own eval/
+    assert saved["checkpoint"] == f"{dirs[0]} + {dirs[1]}" and saved["eval/episodes"] == 1
+    assert saved["per_episode"][0]["steps"] == 4
+    assert main(["eval", "--checkpoint", str(dirs[0].parent), str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
+    assert "no MMaDA policy at" in capsys.readouterr().err
