@@ -48,6 +48,17 @@ def _run_seed(path: Path) -> int | None:
     return None
 
 
+def _checkpoint_seed(checkpoint: str | None) -> int | str | None:
+    """The training seed of the policy an ``eval.json`` names; for an ensemble (``"A + B + C"``, as
+    ``mmada-rl eval --checkpoint A B C`` records it) its members' seeds joined by ``+``, e.g. ``"0+1+2"``."""
+    if not checkpoint:
+        return None
+    seeds = [_run_seed(Path(c)) if Path(c).is_dir() else None for c in checkpoint.split(" + ")]
+    if len(seeds) == 1:
+        return seeds[0]
+    return None if None in seeds else "+".join(str(seed) for seed in seeds)
+
+
 def _split_tags(source: Path) -> tuple[Path, int | None, str]:
     """``RUN[@STEP][@raw]`` -> ``(RUN, STEP or None, log prefix)`` when ``RUN`` is a directory: ``eval``, or
     ``eval_raw`` with ``@raw``; any other source -> ``(source, None, "eval")``. A path that merely contains
@@ -77,8 +88,7 @@ def read_source(source: Path) -> dict:
         if "eval/success_once" not in data:
             raise ValueError(f"{source} is not an evaluation written by `mmada-rl eval` (no eval/success_once).")
         episodes = int(data["eval/episodes"])
-        checkpoint = data.get("checkpoint")
-        seed = _run_seed(Path(checkpoint)) if checkpoint and Path(checkpoint).is_dir() else None
+        seed = _checkpoint_seed(data.get("checkpoint"))
         row = {"seed": seed, "step": None, "episodes": episodes, "success_once": float(data["eval/success_once"]),
                "success_at_end": float(data["eval/success_at_end"]),
                "reached": {k[len("eval/reached/"):]: float(v) for k, v in data.items() if k.startswith("eval/reached/")}}

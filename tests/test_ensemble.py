@@ -11,6 +11,7 @@ from mmada_rl.cli import main
 from mmada_rl.evaluation import evaluate
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, ACTION_TOKENS_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
 from mmada_rl.policy import MMaDAActor, MMaDAEnsemble, PolicyOutput
+from script_loader import load_script
 from test_actor import CHUNK, LOG_PROBS_KEY, build_tiny_model, env, observations  # noqa: F401 (fixtures)
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -98,5 +99,11 @@ def test_mmada_rl_eval_runs_several_checkpoints_as_one_ensemble(observations, tm
     saved = json.loads((dirs[0].parent / "eval_ensemble" / "eval.json").read_text())  # not the member's own eval/
     assert saved["checkpoint"] == f"{dirs[0]} + {dirs[1]}" and saved["eval/episodes"] == 1
     assert saved["per_episode"][0]["steps"] == 4
+    for seed, directory in enumerate(dirs):  # what a training checkpoint keeps beside its model/
+        (directory.parent / "config.json").write_text(json.dumps({"seed": seed}))
+    seeds = load_script("benchmarks/seeds.py")
+    assert seeds.main(["--group", "ensemble", str(dirs[0].parent / "eval_ensemble" / "eval.json"),
+                       "--name", "ensemble", "--out", str(tmp_path / "report")]) == 0
+    assert "s0+1: " in (tmp_path / "report" / "ensemble.md").read_text()  # the members' seeds label the row
     assert main(["eval", "--checkpoint", str(dirs[0].parent), str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
     assert "no MMaDA policy at" in capsys.readouterr().err
