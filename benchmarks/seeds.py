@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 from pretraining import read_evaluations  # noqa: E402
 
-from mmada_rl.evaluation import wilson_interval  # noqa: E402
+from mmada_rl.evaluation import ENSEMBLE_CHECKPOINT_SEPARATOR, wilson_interval  # noqa: E402
 
 
 def _run_seed(path: Path) -> int | None:
@@ -53,7 +53,7 @@ def _checkpoint_seed(checkpoint: str | None) -> int | str | None:
     ``mmada-rl eval --checkpoint A B C`` records it) its members' seeds joined by ``+``, e.g. ``"0+1+2"``."""
     if not checkpoint:
         return None
-    seeds = [_run_seed(Path(c)) if Path(c).is_dir() else None for c in checkpoint.split(" + ")]
+    seeds = [_run_seed(Path(c)) if Path(c).is_dir() else None for c in checkpoint.split(ENSEMBLE_CHECKPOINT_SEPARATOR)]
     if len(seeds) == 1:
         return seeds[0]
     return None if None in seeds else "+".join(str(seed) for seed in seeds)

@@ -56,9 +56,12 @@ from mmada_rl.policy.ensemble import MMaDAEnsemble
 from mmada_rl.policy.execution import ExecutionNoise, PolicyEnv, make_policy_env
 from mmada_rl.policy.model import ACTION_READOUTS, MODEL_CONFIG, MMaDAModel
 
-__all__ = ["EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser", "demonstration_seeds", "episode_seeds",
-           "eval_env_config", "eval_seeds", "evaluate", "load_actor", "resolve_model_dir", "wilson_interval"]
+__all__ = ["ENSEMBLE_CHECKPOINT_SEPARATOR", "EVAL_SEED_BASE", "EpisodeResult", "EvalResult", "add_parser",
+           "demonstration_seeds", "episode_seeds", "eval_env_config", "eval_seeds", "evaluate", "load_actor",
+           "resolve_model_dir", "wilson_interval"]
 
+#: Between an ensemble's member paths in ``eval.json``'s ``checkpoint`` (``"A + B + C"``).
+ENSEMBLE_CHECKPOINT_SEPARATOR = " + "
 #: First evaluation seed; training and demonstration seeds count up from 0.
 EVAL_SEED_BASE = 1_000_000
 #: z of a two-sided 95% normal interval.
@@ -224,11 +227,7 @@ def load_actor(model: MMaDAModel | MMaDAEnsemble | TensorDictModuleBase | str | 
         if len(model) == 1:
             model = model[0]
         else:
-            directories = [resolve_model_dir(d) for d in model]
-            others = [str(d) for d in directories if not (d / MODEL_CONFIG).is_file()]
-            if others:
-                raise ValueError(f"an ensemble is of MMaDA-VLA policies; these are not: {', '.join(others)}.")
-            model = MMaDAEnsemble.load(directories, device=device)
+            model = MMaDAEnsemble.load([resolve_model_dir(d) for d in model], device=device)  # load refuses non-MMaDA dirs
     if not isinstance(model, (MMaDAModel, MMaDAEnsemble, TensorDictModuleBase)):
         directory = resolve_model_dir(model)
         if (directory / MODEL_CONFIG).is_file():
@@ -459,7 +458,7 @@ def _checkpoint_label(model) -> str | None:
     if isinstance(model, (str, Path)):
         return str(model)
     if isinstance(model, (list, tuple)) and all(isinstance(m, (str, Path)) for m in model):
-        return " + ".join(str(m) for m in model)
+        return ENSEMBLE_CHECKPOINT_SEPARATOR.join(str(m) for m in model)
     return None
 
 
