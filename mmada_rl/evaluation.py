@@ -46,7 +46,15 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from tqdm.auto import tqdm
 
-from mmada_rl.baselines import AGENT_CONFIG, POLICY_CONFIG, is_policy_dir, is_rl_agent_dir, load_policy, load_rl_actor
+from mmada_rl.baselines import (
+    AGENT_CONFIG,
+    POLICY_CONFIG,
+    ChunkPolicyEnsemble,
+    is_policy_dir,
+    is_rl_agent_dir,
+    load_policy,
+    load_rl_actor,
+)
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.envs.tasks import task_spec
@@ -221,13 +229,21 @@ def load_actor(model: MMaDAModel | MMaDAEnsemble | TensorDictModuleBase | str | 
                device: str = "cpu") -> TensorDictModuleBase:
     """The chunk actor of a policy: an :class:`MMaDAActor` for an MMaDA-VLA model or an
     :class:`MMaDAEnsemble`, the baseline itself otherwise (an RL baseline's actor as a one-step
-    chunk policy); loaded first when given as a run, checkpoint or model directory, and a list
-    of two or more such directories of MMaDA-VLA policies is loaded as their ensemble."""
+    chunk policy); loaded first when given as a run, checkpoint or model directory. A list of two
+    or more such directories is loaded as their ensemble: an :class:`MMaDAEnsemble` of MMaDA-VLA
+    policies, or a :class:`~mmada_rl.baselines.ChunkPolicyEnsemble` of imitation baselines."""
     if isinstance(model, (list, tuple)):
         if len(model) == 1:
             model = model[0]
         else:
-            model = MMaDAEnsemble.load([resolve_model_dir(d) for d in model], device=device)  # load refuses non-MMaDA dirs
+            directories = [resolve_model_dir(d) for d in model]
+            baselines = [is_policy_dir(d) for d in directories]
+            if all(baselines):
+                return ChunkPolicyEnsemble.load(directories, device=device)
+            if any(baselines):
+                raise ValueError("an ensemble's members are all MMaDA-VLA policies or all imitation baselines (BC, "
+                                 f"Diffusion Policy); got {', '.join(str(d) for d in directories)}.")
+            model = MMaDAEnsemble.load(directories, device=device)  # load refuses any other kind of directory
     if not isinstance(model, (MMaDAModel, MMaDAEnsemble, TensorDictModuleBase)):
         directory = resolve_model_dir(model)
         if (directory / MODEL_CONFIG).is_file():
@@ -533,8 +549,9 @@ def add_parser(sub) -> None:
                    help="directory saved by MMaDAModel.save or by a baseline's save "
                    "(recipes/baselines: BC, Diffusion Policy, and the RL baselines' actors), a checkpoint directory "
                    "with one under model/, or a run directory (its newest checkpoint). Two or more MMaDA-VLA "
-                   "policies (e.g. the same recipe's training seeds) are evaluated as one ensemble: each decodes "
-                   "its chunk greedily and the mean chunk runs, grippers by majority (MMaDAEnsemble).")
+                   "policies (e.g. the same recipe's training seeds), or two or more BC / Diffusion Policy ones, are "
+                   "evaluated as one ensemble: each predicts its chunk (MMaDA-VLA: greedily) and the mean chunk "
+                   "runs, grippers by majority (MMaDAEnsemble, ChunkPolicyEnsemble).")
     p.add_argument("--task", required=True, help="ManiSkill3 task id, e.g. PickCube-v1.")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes (default: %(default)s).")
     p.add_argument("--seed-offset", type=int, default=0, help=f"first env seed is {EVAL_SEED_BASE} + this (default: %(default)s).")

@@ -1,4 +1,4 @@
-"""``MMaDAEnsemble``: several policies' greedy chunks averaged, evaluated as one policy."""
+"""``MMaDAEnsemble`` and ``ChunkPolicyEnsemble``: several policies' chunks averaged, evaluated as one policy."""
 from __future__ import annotations
 
 import json
@@ -7,12 +7,14 @@ import pytest
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from mmada_rl.baselines import ChunkPolicyEnsemble, make_policy
 from mmada_rl.cli import main
 from mmada_rl.evaluation import evaluate
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_KEY, ACTION_TOKENS_KEY, IMAGE_KEY, INSTRUCTION_KEY, STATE_KEY
 from mmada_rl.policy import MMaDAActor, MMaDAEnsemble, PolicyOutput
 from script_loader import load_script
 from test_actor import CHUNK, LOG_PROBS_KEY, build_tiny_model, env, observations  # noqa: F401 (fixtures)
+from test_baselines import K, STATS, TINY, TINY_HEADS, tiny_policy, window_batch
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
 GRIPPER = 6  # PickCube-v1's pd_ee_delta_pose: 6 arm dimensions, then the gripper
@@ -107,3 +109,57 @@ def test_mmada_rl_eval_runs_several_checkpoints_as_one_ensemble(observations, tm
     assert "s0+1: " in (tmp_path / "report" / "ensemble.md").read_text()  # the members' seeds label the row
     assert main(["eval", "--checkpoint", str(dirs[0].parent), str(tmp_path / "nope"), "--task", "PickCube-v1"]) == 2
     assert "no MMaDA policy at" in capsys.readouterr().err
+
+
+# -- the imitation baselines' ensemble ------------------------------------------------
+def test_a_baseline_ensemble_executes_its_members_mean_chunk_with_grippers_by_majority():
+    members = [tiny_policy("bc", seed=0), tiny_policy("bc", seed=1), tiny_policy("diffusion_policy", seed=2)]
+    batch = window_batch(batch=4).select(IMAGE_KEY, STATE_KEY)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        chunks = torch.stack([m(batch.clone())[ACTION_CHUNK_KEY] for m in members])  # (3, 4, K, 7)
+        ensemble = ChunkPolicyEnsemble(members, execute_steps=2)
+        out = ensemble(batch.clone())
+    chunk = out[ACTION_CHUNK_KEY]
+    assert chunk.shape == (4, K, 7) and out[ACTION_KEY].shape == (4, 2, 7)
+    torch.testing.assert_close(chunk[..., :GRIPPER], chunks[..., :GRIPPER].mean(0))
+    assert torch.equal(chunk[..., GRIPPER], chunks[..., GRIPPER].sign().sum(0).sign())  # three votes: never a tie
+    assert not torch.equal(chunks[0], chunks[1])  # the members disagree: the average is none of them
+    torch.testing.assert_close(out[ACTION_KEY], chunk[:, :2])
+    assert ensemble.num_denoise_steps == 1 + 1 + members[2].num_denoise_steps  # network evaluations per chunk
+    assert ensemble.last_decode_seconds > 0
+    unbatched = ensemble(batch[0].clone())  # one env's observation
+    assert unbatched[ACTION_CHUNK_KEY].shape == (K, 7)
+    every_dim = ChunkPolicyEnsemble(members, gripper_dims=())(batch.clone())[ACTION_CHUNK_KEY]
+    torch.testing.assert_close(every_dim, chunks.mean(0))
+
+
+def test_a_baseline_ensemble_refuses_unlike_members_and_has_nothing_to_save(tmp_path):
+    members = [tiny_policy("bc", seed=0), tiny_policy("bc", seed=1)]
+    with pytest.raises(ValueError, match="two or more ChunkPolicy"):
+        ChunkPolicyEnsemble(members[:1])
+    torch.manual_seed(0)
+    longer = make_policy("bc", {**TINY, **TINY_HEADS["bc"], "chunk_size": K + 1}, STATS)
+    with pytest.raises(ValueError, match=f"member 0 has chunk_size={K}, member 1 {K + 1}"):
+        ChunkPolicyEnsemble([members[0], longer])
+    with pytest.raises(ValueError, match="outside"):
+        ChunkPolicyEnsemble(members, gripper_dims=(7,))
+    ensemble = ChunkPolicyEnsemble(members)
+    with pytest.raises(ValueError, match="single policies"):
+        ChunkPolicyEnsemble([ensemble, members[0]])
+    with pytest.raises(ValueError, match="keep their own num_denoise_steps"):
+        ensemble.get_new_version(num_denoise_steps=2)
+    assert ensemble.get_new_version(execute_steps=1).execute_steps == 1
+    with pytest.raises(NotImplementedError, match="no weights of its own"):
+        ensemble.save(tmp_path / "ensemble")
+
+
+def test_mmada_rl_eval_runs_several_baselines_as_one_ensemble(observations, tmp_path, capsys):
+    dirs = [tiny_policy("bc", seed=s).save(tmp_path / f"bc{s}") for s in range(2)]
+    code = main(["eval", "--checkpoint", *map(str, dirs), "--task", "PickCube-v1", "--episodes", "1",
+                 "--max-episode-steps", "3", "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    saved = json.loads((dirs[0] / "eval_ensemble" / "eval.json").read_text())
+    assert saved["checkpoint"] == f"{dirs[0]} + {dirs[1]}" and saved["per_episode"][0]["steps"] == 3
+    mmada = tiny_members(observations, count=1)[0].save(tmp_path / "mmada" / "model")
+    assert main(["eval", "--checkpoint", str(dirs[0]), str(mmada), "--task", "PickCube-v1"]) == 2
+    assert "all MMaDA-VLA policies or all imitation baselines" in capsys.readouterr().err

@@ -14,7 +14,8 @@ Both are TorchRL ``VLAWrapperBase`` actors writing ``("vla_action", "chunk")``
 and ``"action"`` like :class:`~mmada_rl.policy.MMaDAActor`, so
 :func:`~mmada_rl.policy.make_policy_env` and :func:`~mmada_rl.evaluation.evaluate`
 run them as they are. :func:`make_policy` builds one by name, :func:`load_policy`
-rebuilds a saved one.
+rebuilds a saved one, and :class:`ChunkPolicyEnsemble` runs several as one (their chunks
+averaged, as :class:`~mmada_rl.policy.MMaDAEnsemble` does for MMaDA-VLA policies).
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from mmada_rl.baselines.base import POLICY_CONFIG, POLICY_WEIGHTS, ChunkPolicy, 
 from mmada_rl.baselines.bc import BCConfig, BCPolicy, NormalizedChunkError, make_bc_loss
 from mmada_rl.baselines.diffusion_policy import ChunkDiffusionBCLoss, DiffusionPolicy, DiffusionPolicyConfig
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder, RandomShift, random_shift
+from mmada_rl.baselines.ensemble import PANDA_GRIPPER_DIMS, ChunkPolicyEnsemble
 from mmada_rl.baselines.normalization import ChunkNormalizer, NormalizationStats, StateStandardizer
 from mmada_rl.baselines.rl import (
     ACTOR_WEIGHTS,
@@ -55,6 +57,7 @@ __all__ = [
     "ChunkNormalizer",
     "ChunkPolicy",
     "ChunkPolicyConfig",
+    "ChunkPolicyEnsemble",
     "DiffusionPolicy",
     "DiffusionPolicyConfig",
     "EncoderConfig",
@@ -63,6 +66,7 @@ __all__ = [
     "ObservationEncoder",
     "ObservationTrunk",
     "OneStepChunkActor",
+    "PANDA_GRIPPER_DIMS",
     "POLICY_CONFIG",
     "POLICY_WEIGHTS",
     "RLAgent",

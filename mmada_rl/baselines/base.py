@@ -120,11 +120,7 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
                          return_vla_action_container=kwargs.pop("return_vla_action_container", False), **kwargs)
         self.config = config
         self._update_keys()  # again, now that the observation mode is known
-        # no stats: identity maps, to be overwritten by load_state_dict (a loaded policy)
-        low, high, mean, std = stats if stats is not None else (None, None, None, None)
-        self.encoder = ObservationEncoder(config.encoder, image_size=self.image_size, state_dim=config.state_dim,
-                                          state_mean=mean, state_std=std)
-        self.normalizer = ChunkNormalizer(config.action_dim, low, high)
+        self._build_encoding(config, stats)
         self.execute_steps = check_execute_steps(execute_steps, self.chunk_size)
         self.generator = generator
         self.num_denoise_steps = 1
@@ -144,6 +140,14 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
     def obs_mode(self) -> str:
         """``"rgb"`` or ``"state"``: the observation mode of the env it runs in."""
         return self.config.obs_mode
+
+    def _build_encoding(self, config: ChunkPolicyConfig, stats: NormalizationStats | None) -> None:
+        """The observation encoder and the chunk normaliser (no stats: identity maps, to be
+        overwritten by ``load_state_dict``, as for a loaded policy)."""
+        low, high, mean, std = stats if stats is not None else (None, None, None, None)
+        self.encoder = ObservationEncoder(config.encoder, image_size=self.image_size, state_dim=config.state_dim,
+                                          state_mean=mean, state_std=std)
+        self.normalizer = ChunkNormalizer(config.action_dim, low, high)
 
     # -- keys -------------------------------------------------------------------
     def _update_keys(self) -> None:
@@ -168,13 +172,16 @@ class ChunkPolicy(ChunkExecutionMixin, VLAWrapperBase):
         """Features ``[B, F]`` -> normalised chunk ``[B, K, A]``; what each baseline implements."""
         raise NotImplementedError
 
+    def predict_chunk(self, tensordict: TensorDictBase, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The chunk ``[B, K, A]`` in env units for the observations of ``tensordict`` (batch flattened)."""
+        return self.normalizer.denormalize(self._predict_normalized(self.features(tensordict), generator))
+
     def forward(self, tensordict: TensorDictBase, *, tensordict_out: TensorDictBase | None = None,
                 generator: torch.Generator | None = None, **kwargs) -> TensorDictBase:
         """Predict one chunk per observation of ``tensordict`` (batch ``[*B]``)."""
         batch = tensordict.batch_size
         start = time.perf_counter()
-        normalized = self._predict_normalized(self.features(tensordict), generator or self.generator)  # (B, K, A)
-        chunk = self.normalizer.denormalize(normalized)
+        chunk = self.predict_chunk(tensordict, generator or self.generator)  # (B, K, A)
         self.last_decode_seconds = time.perf_counter() - start
         home = tensordict.device or self._get_state(tensordict).device  # where the env reads the action
         chunk = chunk.reshape(*batch, self.chunk_size, self.action_dim).to(home)  # (*B, K, A)

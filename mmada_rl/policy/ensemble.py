@@ -29,7 +29,25 @@ from torch import nn
 from mmada_rl.diffusion.sampler import is_greedy
 from mmada_rl.policy.model import MMaDAModel, PolicyOutput
 
-__all__ = ["MMaDAEnsemble"]
+__all__ = ["MMaDAEnsemble", "average_chunks"]
+
+
+def average_chunks(chunks: torch.Tensor, gripper_dims: Sequence[int] = ()) -> torch.Tensor:
+    """The members' chunks ``[M, B, K, A]`` as one ``[B, K, A]``: their mean, and on each of
+    ``gripper_dims`` the sign most members give (a gripper is closed or open, never between: the
+    mean of two "open" and one "close" would half-close it); a tie takes the first member's value.
+
+    Examples:
+        >>> chunks = torch.tensor([[[[0.2, 1.0]]], [[[0.4, -1.0]]], [[[0.6, 1.0]]]])  # M=3, B=1, K=1, A=2
+        >>> average_chunks(chunks, gripper_dims=[1])
+        tensor([[[0.4000, 1.0000]]])
+    """
+    chunk = chunks.mean(0)  # (B, K, A)
+    grippers = list(gripper_dims)
+    if grippers:
+        vote = chunks[..., grippers].sign().sum(0)  # (B, K, G): +M all open ... -M all closed
+        chunk[..., grippers] = torch.where(vote == 0, chunks[0][..., grippers], vote.sign())
+    return chunk
 
 
 class MMaDAEnsemble(nn.Module):
@@ -123,12 +141,7 @@ class MMaDAEnsemble(nn.Module):
             raise ValueError("an MMaDAEnsemble decodes greedily only: its averaged chunk is no member's sample "
                              "(evaluate its members one by one with sample_temperature).")
         outputs = [m.act(td, greedy=True, decode_goal=decode_goal and i == 0) for i, m in enumerate(self.members)]
-        chunks = torch.stack([out.chunk for out in outputs])  # (M, B, K, A)
-        chunk = chunks.mean(0)  # (B, K, A)
-        grippers = list(self.action_tokenizer.config.gripper_dims)
-        if grippers:
-            vote = chunks[..., grippers].sign().sum(0)  # (B, K, G): +M all open ... -M all closed
-            chunk[..., grippers] = torch.where(vote == 0, chunks[0][..., grippers], vote.sign())
+        chunk = average_chunks(torch.stack([out.chunk for out in outputs]), self.action_tokenizer.config.gripper_dims)
         first = outputs[0]
         tokens = self.action_tokenizer.encode(chunk).to(first.action_tokens)
         return first._replace(chunk=chunk, action_tokens=tokens, log_prob=torch.full_like(first.log_prob, float("nan")))
