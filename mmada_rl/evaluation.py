@@ -551,7 +551,7 @@ def add_parser(sub) -> None:
                    "with one under model/, or a run directory (its newest checkpoint). Two or more MMaDA-VLA "
                    "policies (e.g. the same recipe's training seeds), or two or more BC / Diffusion Policy ones, are "
                    "evaluated as one ensemble: each predicts its chunk (MMaDA-VLA: greedily) and the mean chunk "
-                   "runs, grippers by majority (MMaDAEnsemble, ChunkPolicyEnsemble).")
+                   "runs (an MMaDA-VLA gripper by majority: MMaDAEnsemble, ChunkPolicyEnsemble).")
     p.add_argument("--task", required=True, help="ManiSkill3 task id, e.g. PickCube-v1.")
     p.add_argument("--episodes", type=int, default=50, help="evaluation episodes (default: %(default)s).")
     p.add_argument("--seed-offset", type=int, default=0, help=f"first env seed is {EVAL_SEED_BASE} + this (default: %(default)s).")

@@ -28,7 +28,7 @@ from mmada_rl.baselines.base import POLICY_CONFIG, POLICY_WEIGHTS, ChunkPolicy, 
 from mmada_rl.baselines.bc import BCConfig, BCPolicy, NormalizedChunkError, make_bc_loss
 from mmada_rl.baselines.diffusion_policy import ChunkDiffusionBCLoss, DiffusionPolicy, DiffusionPolicyConfig
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder, RandomShift, random_shift
-from mmada_rl.baselines.ensemble import PANDA_GRIPPER_DIMS, ChunkPolicyEnsemble
+from mmada_rl.baselines.ensemble import ChunkPolicyEnsemble
 from mmada_rl.baselines.normalization import ChunkNormalizer, NormalizationStats, StateStandardizer
 from mmada_rl.baselines.rl import (
     ACTOR_WEIGHTS,
@@ -66,7 +66,6 @@ __all__ = [
     "ObservationEncoder",
     "ObservationTrunk",
     "OneStepChunkActor",
-    "PANDA_GRIPPER_DIMS",
     "POLICY_CONFIG",
     "POLICY_WEIGHTS",
     "RLAgent",
