@@ -8,7 +8,7 @@ encoder and normalisation), and the chunk executed is their mean, the gripper in
 its tokenizer keeps at -1 or +1 (so that ensemble sets it by majority), a regressed gripper is
 continuous, and snapping it to the members' majority sign closes it early: three BC seeds on
 PickCube-v1 succeed in 25 of 50 episodes with the mean, 4 with the majority (grasping in 12;
-``docs/results/pretraining.md``, "Three seeds as one ensemble"). It is a
+``docs/results/pretraining.md``, "BC's three seeds as one ensemble"). It is a
 :class:`~mmada_rl.baselines.base.ChunkPolicy` itself, so :func:`~mmada_rl.evaluation.evaluate`
 runs it unchanged (``mmada-rl eval --checkpoint RUN_A RUN_B RUN_C``); it has no weights of its
 own, so it is neither trained nor saved: it is loaded from its members' directories.
