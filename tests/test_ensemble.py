@@ -139,7 +139,7 @@ def test_a_baseline_ensemble_refuses_unlike_members_and_has_nothing_to_save(tmp_
         ChunkPolicyEnsemble(members[:1])
     torch.manual_seed(0)
     longer = make_policy("bc", {**TINY, **TINY_HEADS["bc"], "chunk_size": K + 1}, STATS)
-    with pytest.raises(ValueError, match=f"member 0 has chunk_size={K}, member 1 {K + 1}"):
+    with pytest.raises(ValueError, match=f"member 0 has chunk size {K}, member 1 {K + 1}"):
         ChunkPolicyEnsemble([members[0], longer])
     with pytest.raises(ValueError, match="outside"):
         ChunkPolicyEnsemble(members, gripper_dims=(7,))

@@ -27,7 +27,7 @@ from torch import nn
 
 from mmada_rl.baselines.base import ChunkPolicy, ChunkPolicyConfig
 from mmada_rl.baselines.normalization import NormalizationStats
-from mmada_rl.policy.ensemble import average_chunks
+from mmada_rl.policy.ensemble import average_chunks, check_members
 
 __all__ = ["ChunkPolicyEnsemble"]
 
@@ -50,17 +50,17 @@ class ChunkPolicyEnsemble(ChunkPolicy):
     kind = "ensemble"
 
     def __init__(self, members: Sequence[ChunkPolicy], gripper_dims: Sequence[int] = (), **kwargs) -> None:
-        members = list(members)
-        if len(members) < 2 or not all(isinstance(m, ChunkPolicy) for m in members):
-            raise ValueError(f"an ensemble needs two or more ChunkPolicy members, got {[type(m).__name__ for m in members]}.")
+        members = check_members(members, ChunkPolicy, {
+            "chunk size": lambda m: m.config.chunk_size,
+            "action dimension": lambda m: m.config.action_dim,
+            "observation mode": lambda m: m.config.obs_mode,
+            "image size": lambda m: m.config.image_size,
+            "state size": lambda m: m.config.state_dim,
+            "camera (camera_fov)": lambda m: m.config.camera_fov,
+        })  # fmt: skip
         if any(isinstance(m, ChunkPolicyEnsemble) for m in members):
             raise ValueError("ensemble members must be single policies, not ensembles.")
         lead = members[0].config
-        for i, member in enumerate(members[1:], start=1):
-            for what in ("chunk_size", "action_dim", "obs_mode", "image_size", "state_dim", "camera_fov"):
-                mine, theirs = getattr(lead, what), getattr(member.config, what)
-                if mine != theirs:
-                    raise ValueError(f"ensemble members must act alike: member 0 has {what}={mine!r}, member {i} {theirs!r}.")
         bad = [d for d in gripper_dims if not 0 <= d < lead.action_dim]
         if bad:
             raise ValueError(f"gripper_dims {bad} are outside [0, action_dim={lead.action_dim}).")

@@ -19,8 +19,9 @@ fine-tuned: sampled decoding and decoding-path log-probabilities raise.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -29,7 +30,22 @@ from torch import nn
 from mmada_rl.diffusion.sampler import is_greedy
 from mmada_rl.policy.model import MMaDAModel, PolicyOutput
 
-__all__ = ["MMaDAEnsemble", "average_chunks"]
+__all__ = ["MMaDAEnsemble", "average_chunks", "check_members"]
+
+
+def check_members(members: Sequence, kind: type, properties: Mapping[str, Callable[[Any], Any]]) -> list:
+    """``members`` as a list, checked to be two or more ``kind`` instances that agree with the first
+    on every one of ``properties`` (a name and how to read it); otherwise a ``ValueError`` naming
+    the first difference."""
+    members = list(members)
+    if len(members) < 2 or not all(isinstance(m, kind) for m in members):
+        raise ValueError(f"an ensemble needs two or more {kind.__name__} members, got {[type(m).__name__ for m in members]}.")
+    for i, other in enumerate(members[1:], start=1):
+        for what, read in properties.items():
+            mine, theirs = read(members[0]), read(other)
+            if mine != theirs:
+                raise ValueError(f"ensemble members must act alike: member 0 has {what} {mine!r}, member {i} {theirs!r}.")
+    return members
 
 
 def average_chunks(chunks: torch.Tensor, gripper_dims: Sequence[int] = ()) -> torch.Tensor:
@@ -63,22 +79,15 @@ class MMaDAEnsemble(nn.Module):
 
     def __init__(self, members: Sequence[MMaDAModel]) -> None:
         super().__init__()
-        members = list(members)
-        if len(members) < 2 or not all(isinstance(m, MMaDAModel) for m in members):
-            raise ValueError(f"an ensemble needs two or more MMaDAModel members, got {[type(m).__name__ for m in members]}.")
+        members = check_members(members, MMaDAModel, {
+            "chunk size": lambda m: m.config.chunk_size,
+            "action dimension": lambda m: m.action_tokenizer.action_dim,
+            "gripper dimensions": lambda m: m.action_tokenizer.config.gripper_dims,
+            "image size": lambda m: m.image_size,
+            "cameras (camera_fov)": lambda m: m.config.camera_fov,
+            "reads the state": lambda m: m.proprio_tokenizer is not None,
+        })  # fmt: skip
         self.members = nn.ModuleList(members)
-        lead = members[0]
-        for i, other in enumerate(members[1:], start=1):
-            for what, mine, theirs in (
-                ("chunk size", lead.config.chunk_size, other.config.chunk_size),
-                ("action dimension", lead.action_tokenizer.action_dim, other.action_tokenizer.action_dim),
-                ("gripper dimensions", lead.action_tokenizer.config.gripper_dims, other.action_tokenizer.config.gripper_dims),
-                ("image size", lead.image_size, other.image_size),
-                ("cameras (camera_fov)", lead.config.camera_fov, other.config.camera_fov),
-                ("reads the state", lead.proprio_tokenizer is not None, other.proprio_tokenizer is not None),
-            ):
-                if mine != theirs:
-                    raise ValueError(f"ensemble members must act alike: member 0 has {what} {mine!r}, member {i} {theirs!r}.")
 
     @classmethod
     def load(cls, directories: Sequence[str | Path], *, device: str | torch.device = "cpu") -> MMaDAEnsemble:
