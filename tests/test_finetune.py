@@ -23,7 +23,7 @@ from mmada_rl.keys import ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_K
 from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import group_relative_advantages
-from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAModel, make_policy_env
+from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAModel, make_policy_env
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from mmada_rl.training.checkpoint import load_checkpoint
 from script_loader import load_script
@@ -803,6 +803,47 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert clip and all(0.0 <= float(line.split(",")[1]) <= 1.0 for line in clip)
 
 
+def test_acting_with_frozen_partners_collects_the_ensemble_chunk_and_trains_the_policy_alone(
+        toy_pretrain_run, model, pick_demos, tmp_path):
+    """``collector.ensemble_with``: the fine-tuned policy acts as one MMaDAEnsemble with frozen pretrained policies
+    (itself first, the very object the optimizer updates); the run trains it alone and leaves the partners as
+    they were; without noise, or with PPO, the option is refused."""
+    utils = recipe_utils()
+    partner_dir = toy_pretrain_run / "checkpoints" / "step_00000003" / "model"
+    cfg = OmegaConf.create({"device": "cpu", "collector": {"ensemble_with": [str(partner_dir)]}})
+    behaviour = utils.make_behaviour(cfg, model)
+    assert isinstance(behaviour, MMaDAEnsemble) and len(behaviour.members) == 2 and behaviour.members[0] is model
+    partner = behaviour.members[1]
+    assert not any(p.requires_grad for p in partner.parameters()) and not partner.denoiser.training
+    assert utils.make_behaviour(OmegaConf.create({"collector": {"ensemble_with": []}}), model) is model
+    env = make_env("PickCube-v1", max_episode_steps=10)
+    obs = env.reset(seed=0)
+    env.close()
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        acted = MMaDAActor(behaviour)(obs.clone()).get(("vla_action", "chunk"))
+        alone = [MMaDAActor(m)(obs.clone()).get(("vla_action", "chunk")) for m in (model, partner)]
+    torch.testing.assert_close(acted[..., :6], (alone[0][..., :6] + alone[1][..., :6]) / 2)  # the arm: their mean
+
+    run_dir = tmp_path / "ensemble"
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
+                      "eval.episodes=0", "value.input=privileged_state", "loss.rwr.weighting=signed",
+                      "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1",
+                      f"collector.ensemble_with=['{partner_dir}']")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "exploration: the greedy mean chunk of this policy and 1 frozen others + N(0, 0.1^2)" in proc.stdout
+    assert "done: 30 env steps, 6 updates" in proc.stdout
+    trained = MMaDAModel.load(run_dir / "checkpoints" / "step_00000003" / "model").denoiser.state_dict()
+    assert any(not torch.equal(t, trained[k]) for k, t in model.denoiser.state_dict().items())
+    after = MMaDAModel.load(partner_dir).denoiser.state_dict()
+    assert all(torch.equal(t, after[k]) for k, t in partner.denoiser.state_dict().items())
+    # every stored decision holds the executed (ensemble + noise) chunk's tokens, under the fine-tuned policy's tokenizer
+    assert len(saved_online_buffer(run_dir)) == 6
+    for overrides in (["collector.action_noise=0"], ["algo=ppo", "collector.action_noise=0"]):
+        bad = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}",
+                         *overrides, f"collector.ensemble_with=['{partner_dir}']")
+        assert bad.returncode != 0 and "collector.ensemble_with acts with the greedy chunk averaged" in bad.stderr
+
+
 def saved_online_buffer(run_dir: Path):
     """The online buffer a fine-tuning run saved in ``run_dir``, loaded as the recipe resumes it: the recipe's
     ``make_online_buffer`` on the config of the run's newest checkpoint."""
@@ -909,6 +950,15 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert not any(a.startswith(("env.camera_fov", "data.dir")) for a in compare.command(
         "sac_rlpd_state", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos)))
     assert not any(a.startswith("env.camera_fov") for a in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500))
+    # the ensemble method acts with the policies pretrained with the other --ensemble-seeds, its own seed skipped
+    ens = compare.command("mmada_gae_noise_privileged_keep_ensemble", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500,
+                          ensemble_seeds=[0, 1, 2])
+    assert "collector.ensemble_with=['runs/p_s0','runs/p_s2']" in ens and "pretrained=runs/p_s1" in ens
+    assert set(ens) - set(keep) == {"collector.ensemble_with=['runs/p_s0','runs/p_s2']", "seed=1", "pretrained=runs/p_s1"}
+    assert not any("ensemble_with" in a for a in compare.command("mmada_gae_noise_privileged_keep", "PickCube-v1", 0, 1000,
+                                                                 out, "x", 5, 500, ensemble_seeds=[0, 1]))
+    with pytest.raises(SystemExit):  # an ensemble method with no partner: refused before any run starts
+        compare.main(["run", "--methods", "mmada_gae_noise_privileged_keep_ensemble", "--seeds", "0", "--ensemble-seeds", "0"])
     sampled = compare.command("mmada_ppo_group", "PickCube-v1", 0, 1000, out, "x", 5, 500, eval_sample_temperature=1.0)
     assert "eval.sample_temperature=1.0" in sampled and "eval.sample_temperature=1.0" not in fresh
     assert not any(a.startswith("eval.sample") for a in compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500,

@@ -147,6 +147,10 @@ METHODS = {
     "mmada_gae_noise_privileged_keep": ("mmada_gae_noise_privileged with the pretraining run's state dropout, "
                                         "expected-bin loss and image shift kept (ours)", "rgb+proprio",
                                         _keep_pretraining_loss(_GAE_NOISE_PRIVILEGED), True),
+    "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
+                                                 "policies pretrained with the other --ensemble-seeds (ours: the mean "
+                                                 "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
+                                                 "rgb+proprio", _keep_pretraining_loss(_GAE_NOISE_PRIVILEGED), True),
     "mmada_ppo": ("MMaDA-VLA + path-likelihood PPO (ours)", "rgb+proprio",
                   [*_FINETUNE, "algo=ppo"], True),
     "mmada_ppo_group": ("MMaDA-VLA + path-likelihood PPO, group-relative success advantages (ours)", "rgb+proprio",
@@ -186,12 +190,29 @@ METHODS = {
 }
 
 
+#: the methods that act together with the policies pretrained with the other seeds (``run --ensemble-seeds``)
+ENSEMBLE_METHODS = ("mmada_gae_noise_privileged_keep_ensemble",)
+
+
+def ensemble_partners(method: str, task: str, seed: int, pretrained: str, ensemble_seeds: list[int]) -> list[str]:
+    """The pretrained policies a run of ``method`` from seed ``seed`` acts with: ``pretrained`` at each of
+    ``ensemble_seeds`` but ``seed`` (none for the other methods); a ``ValueError`` when an ensemble method gets none."""
+    if method not in ENSEMBLE_METHODS:
+        return []
+    partners = [pretrained.format(task=task, seed=s) for s in ensemble_seeds if s != seed]
+    if not partners:
+        raise ValueError(f"{method} acts with the policies pretrained with other seeds: pass --ensemble-seeds with at "
+                         f"least one seed besides {seed} (e.g. --seeds 0 --ensemble-seeds 0 1 2).")
+    return partners
+
+
 def run_dir(runs: Path, task: str, method: str, seed: int) -> Path:
     return runs / task / method / f"s{seed}"
 
 
 def command(method: str, task: str, seed: int, budget: int, out: Path, pretrained: str, eval_episodes: int,
-            eval_every: int, demos: str = "data/{task}", eval_sample_temperature: float | None = None) -> list[str]:
+            eval_every: int, demos: str = "data/{task}", eval_sample_temperature: float | None = None,
+            ensemble_seeds: list[int] = ()) -> list[str]:
     """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``.
 
     ``pretrained`` is our fine-tuning methods' starting point. ``demos`` is the RGB demonstration buffer every
@@ -199,7 +220,8 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
     baseline (PPO from pixels too, which learns without demonstrations) is given the camera the buffer was
     recorded with, so every method sees the same images (ours take theirs from the pretrained policy, trained on
     the same buffer). The state baselines keep their privileged-state demonstrations.
-    ``eval_sample_temperature`` evaluates our methods' sampled (not greedy) decoding."""
+    ``eval_sample_temperature`` evaluates our methods' sampled (not greedy) decoding. ``ensemble_seeds``: see
+    :func:`ensemble_partners`."""
     _, obs, recipe, online = METHODS[method]
     demos = demos.format(task=task, seed=seed)
     cmd = [sys.executable, *recipe, f"env.task={task}", f"seed={seed}", f"run_dir={out}", f"eval.episodes={eval_episodes}"]
@@ -208,6 +230,9 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
                 f"eval.interval_env_steps={eval_every}", f"demos.dir={demos}"]
         if eval_sample_temperature is not None:
             cmd.append(f"eval.sample_temperature={eval_sample_temperature}")
+        partners = ensemble_partners(method, task, seed, pretrained, list(ensemble_seeds))
+        if partners:
+            cmd.append("collector.ensemble_with=[" + ",".join(f"'{p}'" for p in partners) + "]")
     elif online:
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
     elif obs == "rgb+proprio":
@@ -246,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
                     print(f"[compare] {task} {method} s{seed}: done already ({out})")
                     continue
                 cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every,
-                              args.demos, args.eval_sample_temperature)
+                              args.demos, args.eval_sample_temperature, args.ensemble_seeds)
                 print(f"[compare] {task} {method} s{seed}: {shlex.join(cmd[1:])}", flush=True)
                 proc = subprocess.run(cmd, cwd=ROOT)
                 if proc.returncode != 0:
@@ -471,6 +496,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval-sample-temperature", type=float, default=None,
                    help="evaluate our fine-tuning methods with tokens sampled at this temperature, the stochastic policy "
                         "they train (default: greedy decoding; the baselines always evaluate their own way)")
+    p.add_argument("--ensemble-seeds", nargs="+", type=int, default=[],
+                   help="for the methods that act as an ensemble (" + ", ".join(ENSEMBLE_METHODS) + "): the seeds "
+                        "whose --pretrained policies act together with each run's own (its own seed is skipped)")
     p.add_argument("--runs", type=Path, default=ROOT / "runs" / "compare")
     p.set_defaults(func=run)
     r = sub.add_parser("report", help="tables and curves from the existing runs")
@@ -490,6 +518,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "report" and args.window < 1:
         parser.error(f"--window must be >= 1 env step, got {args.window}.")
+    if args.command == "run":
+        try:  # every ensemble method has partners for every seed, before any run starts
+            for task in args.task:
+                for seed in args.seeds:
+                    for method in args.methods:
+                        ensemble_partners(method, task, seed, args.pretrained, args.ensemble_seeds)
+        except ValueError as err:
+            parser.error(str(err))
     return args.func(args)
 
 

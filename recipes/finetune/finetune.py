@@ -36,6 +36,12 @@ read-out, e.g. the mean of the action bins) and executes each chunk with ``N(0, 
 actions (:class:`~mmada_rl.policy.ExecutionNoise`); the online rows hold the executed actions' tokens, so
 with binary weights of episode success the successful noisy rollouts are imitated as demonstrations are.
 
+With ``collector.ensemble_with=[RUN, ...]`` (and ``collector.action_noise > 0``) the fine-tuned policy acts
+together with those frozen pretrained policies: each chunk executed is the mean of their greedy chunks
+(:class:`~mmada_rl.policy.MMaDAEnsemble`, the fine-tuned policy first) plus the noise, and the online rows teach
+the fine-tuned policy that executed chunk, weighted by its advantage. The ensemble explores around a better
+policy than any one member; evaluation is of the fine-tuned policy alone.
+
 With ``value.pretrain_steps > 0`` (GAE) the value network is first regressed on the demonstrations'
 discounted returns, so that the first advantages come from a critic that has seen the task. With
 ``value.warmup_env_steps=N > 0`` (GAE; DPPO's critic warm-up) the critic alone learns on the rollouts of the
@@ -69,6 +75,7 @@ from utils import (
     check_config,
     critic_warmup_steps,
     decision_rows,
+    ensemble_partners,
     executed_steps,
     exploration_sampler,
     load_pretrained,
@@ -188,7 +195,9 @@ def main(cfg: DictConfig) -> None:
                     + (f", each with {n_demo} demo windows (demo_coef {cfg.loss.ppo.demo_coef})" if demo_anchor is not None else ""))
     warmup = critic_warmup_steps(cfg)
     noise = action_noise(cfg)
-    exploring = (f"greedy chunks + N(0, {noise:g}^2) on the arm's actions" if noise > 0 else
+    partners = ensemble_partners(cfg)
+    acting = f"the greedy mean chunk of this policy and {len(partners)} frozen others" if partners else "greedy chunks"
+    exploring = (f"{acting} + N(0, {noise:g}^2) on the arm's actions" if noise > 0 else
                  f"tokens sampled at temperature {cfg.collector.temperature}")
     print(f"{PREFIX} algo={cfg.algo} advantage={cfg.advantage.estimator} {updates_desc}; exploration: {exploring}; "
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps"

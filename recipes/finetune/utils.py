@@ -43,7 +43,7 @@ from mmada_rl.keys import (
 )
 from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.advantages import absorbing_success_reward, group_relative_advantages, returns_to_go
-from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAModel
+from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAEnsemble, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
 from mmada_rl.policy.value import PrivilegedValueNetwork, ValueNetwork, make_value_operator
@@ -73,6 +73,9 @@ def check_config(cfg: DictConfig) -> None:
     noise = action_noise(cfg)
     if noise < 0:
         raise ValueError(f"collector.action_noise must be >= 0 (0: sampled tokens), got {noise!r}.")
+    if ensemble_partners(cfg) and not (noise > 0 and cfg.algo == "rwr"):
+        raise ValueError("collector.ensemble_with acts with the greedy chunk averaged over the policies (no member's "
+                         "sample): it needs algo=rwr and collector.action_noise > 0 to explore around that chunk.")
     if noise > 0 and cfg.algo != "rwr":
         raise ValueError("collector.action_noise > 0 stores the executed actions' tokens, which no decoding path produced; "
                          "path-likelihood PPO needs the sampled paths: use algo=rwr or collector.action_noise=0.")
@@ -182,12 +185,30 @@ def make_noise_generator(cfg: DictConfig) -> torch.Generator | None:
     return torch.Generator().manual_seed(int(cfg.seed)) if action_noise(cfg) > 0 else None
 
 
+def ensemble_partners(cfg: DictConfig) -> list[str]:
+    """``collector.ensemble_with``: the frozen policies the fine-tuned one acts together with (none by default)."""
+    return [str(p) for p in (cfg.collector.get("ensemble_with") or [])]
+
+
+def make_behaviour(cfg: DictConfig, model: MMaDAModel) -> MMaDAModel | MMaDAEnsemble:
+    """What acts while collecting: ``model`` itself, or with ``collector.ensemble_with`` an
+    :class:`~mmada_rl.policy.MMaDAEnsemble` of ``model`` (first: its tokenizer encodes the executed chunk) and
+    those policies, loaded frozen. The ensemble holds ``model`` itself, so every update reaches the acting
+    ensemble; evaluation and checkpoints are of ``model`` alone."""
+    partners = ensemble_partners(cfg)
+    if not partners:
+        return model
+    frozen = [MMaDAModel.load(resolve_model_dir(p), device=cfg.device).eval().requires_grad_(False) for p in partners]
+    return MMaDAEnsemble([model, *frozen])
+
+
 def make_policy_env_for(cfg: DictConfig, model: MMaDAModel, noise_generator: torch.Generator | None = None) -> PolicyEnv:
     """The training env: chunks of ``execute_steps`` actions, each with its discounted reward sum; with
-    ``collector.action_noise > 0`` the policy is the actor wrapped in :class:`~mmada_rl.policy.ExecutionNoise`."""
+    ``collector.action_noise > 0`` the policy is the actor wrapped in :class:`~mmada_rl.policy.ExecutionNoise`,
+    and with ``collector.ensemble_with`` the actor runs :func:`make_behaviour`'s ensemble."""
     fail = cfg.debug.fail_after_env_steps
     env = make_env(make_env_config(cfg, model), extra_transform=_FailAfter(int(fail)) if fail else None)
-    actor = MMaDAActor(model, execute_steps=cfg.collector.execute_steps)
+    actor = MMaDAActor(make_behaviour(cfg, model), execute_steps=cfg.collector.execute_steps)
     penv = make_policy_env(env, actor, chunk_gamma=float(cfg.advantage.gamma))
     if action_noise(cfg) > 0:
         penv = penv._replace(policy=ExecutionNoise(penv.policy, action_noise(cfg), generator=noise_generator))
