@@ -233,6 +233,59 @@ def test_privileged_critic_standardises_its_input_by_running_moments():
     assert int(value_op.module.count) == 50 and "module.count" in value_op.state_dict()
 
 
+def test_standardized_critic_learns_large_targets_faster_and_answers_in_their_units():
+    """``value.normalize_targets``: the critic's targets' running moments are those of every target seen, its output is
+    the network's times their std plus their mean, the moments are saved with the weights; on targets around 60 (a
+    fine-tuning run's scale) the same steps leave it with a far smaller error than the plain critic."""
+    from omegaconf import OmegaConf
+
+    from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY
+    from mmada_rl.policy.value import PrivilegedValueNetwork, StandardizedValue, make_value_operator
+
+    utils = recipe_utils()
+    cfg = OmegaConf.load(RECIPE.parent / "config" / "toy.yaml")
+    cfg.value.input, cfg.env.task = "privileged_state", "PickCube-v1"
+    assert not isinstance(utils.make_value(cfg, None, None)[0].module, StandardizedValue)  # the default: off
+    cfg.value.normalize_targets = True
+    value_op, _ = utils.make_value(cfg, None, None)
+    assert isinstance(value_op.module, StandardizedValue)
+    assert isinstance(value_op.module.network, PrivilegedValueNetwork)
+
+    torch.manual_seed(0)
+    states = torch.randn(400, 6)
+    targets = (60 + 25 * torch.tanh(states[:, :2].sum(-1, keepdim=True))).reshape(-1, 1)
+    rows = TensorDict({PRIVILEGED_STATE_KEY: states, VALUE_TARGET_KEY: targets}, batch_size=[400])
+    fit, held_out = rows[:300], rows[300:]
+
+    def fitted(standardized: bool):
+        torch.manual_seed(1)
+        net = PrivilegedValueNetwork(6, hidden=32)
+        op = make_value_operator(StandardizedValue(net) if standardized else net)
+        optimizer = torch.optim.Adam(op.parameters(), lr=3e-4)
+        for step in range(60):  # what a run's critic gets in its first fifteen iterations
+            batch = fit[(step * 32) % 300:][:32]
+            utils.value_step(op, optimizer, batch, batch.get(VALUE_TARGET_KEY))
+        with torch.no_grad():
+            error = float(torch.nn.functional.mse_loss(op(held_out.clone()).get("state_value"), held_out.get(VALUE_TARGET_KEY)))
+        return op, error
+
+    standard, standard_error = fitted(True)
+    _, plain_error = fitted(False)
+    assert standard_error < 0.1 * plain_error, (standard_error, plain_error)
+    assert standard_error < float(held_out.get(VALUE_TARGET_KEY).var())  # better than the constant mean
+
+    value = standard.module
+    seen = torch.cat([fit[(step * 32) % 300:][:32].get(VALUE_TARGET_KEY) for step in range(60)])
+    torch.testing.assert_close(value.mean.float(), seen.mean())
+    torch.testing.assert_close(value.target_variance(), seen.var(), rtol=1e-4, atol=1e-4)
+    x = states[:5]
+    torch.testing.assert_close(value(x), value.network(x) * seen.std() + seen.mean(), rtol=1e-4, atol=1e-3)
+    assert int(value.network.count) == len(seen)  # the inputs still reach the network's own moments
+    copy = make_value_operator(StandardizedValue(PrivilegedValueNetwork(6, hidden=32)))
+    copy.load_state_dict(standard.state_dict())
+    torch.testing.assert_close(copy.module(x), value(x))
+
+
 def test_absorbing_success_reward_refuses_an_undiscounted_value():
     from mmada_rl.objectives.advantages import absorbing_success_reward
 
@@ -757,6 +810,10 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
                           "eval.episodes=0", "value.pretrain_steps=3"], 30),
     ("noisy_privileged_critic", ["advantage.estimator=gae", "value.input=privileged_state", "loss.rwr.weighting=signed",
                            "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0"], 30),
+    ("noisy_privileged_standardized", ["advantage.estimator=gae", "value.input=privileged_state",
+                                       "value.normalize_targets=true", "loss.rwr.weighting=signed",
+                                       "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1",
+                                       "eval.episodes=0"], 30),
 ])
 def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -791,6 +848,10 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert list(fitted["results"]) == ["raw", "standardised", "standardised, clipped to [-5, 5]"]
         assert all(math.isfinite(r["held_out_mse"]) and r["held_out_mse"] >= 0 for r in fitted["results"].values())
         assert (out / "critic_fit.png").stat().st_size > 0
+    if name == "noisy_privileged_standardized":  # the checkpoint holds the critic's target and input moments
+        value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]
+        assert float(value["module.count"]) > 0 and float(value["module.sum_sq"]) > 0  # the value targets'
+        assert float(value["module.network.count"]) > 0  # the states'
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
         history = json.loads((tmp_path / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps

@@ -147,6 +147,11 @@ METHODS = {
     "mmada_gae_noise_privileged_keep": ("mmada_gae_noise_privileged with the pretraining run's state dropout, "
                                         "expected-bin loss and image shift kept (ours)", "rgb+proprio",
                                         _keep_pretraining_loss(_GAE_NOISE_PRIVILEGED), True),
+    "mmada_gae_noise_privileged_keep_valuenorm": ("mmada_gae_noise_privileged_keep with the critic learning its "
+                                                  "targets standardised by their running moments (ours: MAPPO's "
+                                                  "value normalisation)", "rgb+proprio",
+                                                  [*_keep_pretraining_loss(_GAE_NOISE_PRIVILEGED),
+                                                   "value.normalize_targets=true"], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",

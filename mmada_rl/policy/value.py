@@ -15,7 +15,22 @@ from torchrl.modules import ValueOperator
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
 from mmada_rl.keys import IMAGE_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 
-__all__ = ["PrivilegedValueNetwork", "ValueNetwork", "make_value_operator"]
+__all__ = ["PrivilegedValueNetwork", "StandardizedValue", "ValueNetwork", "make_value_operator"]
+
+
+@torch.no_grad()
+def merge_moments(count: torch.Tensor, mean: torch.Tensor, sum_sq: torch.Tensor, x: torch.Tensor) -> None:
+    """Merge the rows of ``x`` ``[N, *mean.shape]`` into running moments, in place (Chan et al.'s parallel update):
+    ``count`` rows seen, their ``mean`` and summed squared deviations ``sum_sq``."""
+    n = float(x.shape[0])
+    if n == 0:
+        return
+    x = x.to(mean.dtype)
+    batch_mean = x.mean(0)
+    delta, total = batch_mean - mean, count + n
+    sum_sq += ((x - batch_mean) ** 2).sum(0) + delta**2 * count * n / total
+    mean += delta * n / total
+    count.copy_(total)
 
 
 class ValueNetwork(nn.Module):
@@ -87,18 +102,9 @@ class PrivilegedValueNetwork(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(state_dim, hidden), nn.LayerNorm(hidden), nn.Mish(),
                                  nn.Linear(hidden, hidden), nn.LayerNorm(hidden), nn.Mish(), nn.Linear(hidden, 1))
 
-    @torch.no_grad()
     def observe(self, states: torch.Tensor) -> None:
-        """Merge the moments of ``states`` ``[..., D]`` into the running ones (Chan et al.'s parallel update)."""
-        x = states.reshape(-1, self.mean.shape[0]).to(torch.float64)
-        n = float(x.shape[0])
-        if n == 0:
-            return
-        batch_mean = x.mean(0)
-        delta, total = batch_mean - self.mean, self.count + n
-        self.sum_sq += ((x - batch_mean) ** 2).sum(0) + delta**2 * self.count * n / total
-        self.mean += delta * n / total
-        self.count.copy_(total)
+        """Merge the moments of ``states`` ``[..., D]`` into the running ones."""
+        merge_moments(self.count, self.mean, self.sum_sq, states.reshape(-1, self.mean.shape[0]))
 
     def normalized(self, privileged_state: torch.Tensor) -> torch.Tensor:
         """The input as the MLP reads it: standardised and clipped (unchanged before any :meth:`observe`,
@@ -113,6 +119,60 @@ class PrivilegedValueNetwork(nn.Module):
         return self.mlp(self.normalized(privileged_state))
 
 
-def make_value_operator(network: ValueNetwork | PrivilegedValueNetwork) -> ValueOperator:
+class StandardizedValue(nn.Module):
+    """A value network that learns standardised returns (MAPPO's value normalisation).
+
+    The fine-tuning recipes' value targets span two orders of magnitude (on PickCube-v1, 0 to 100 with the
+    success absorbing) while a fresh network outputs about 0: regressed on them directly it spends much of a
+    run's few critic steps climbing to their scale. Here ``network`` predicts the target standardised by running
+    moments of the targets it has been fitted on (:meth:`observe_targets`, which the recipe's value step calls),
+    and :meth:`forward` returns it in the targets' units, ``network(x) * std + mean``, as GAE reads it. The
+    regression's loss is the squared error over :meth:`target_variance`, the standardised error. Before any
+    target is observed the output is the network's own (mean 0, std 1). The moments are buffers, saved and
+    resumed with the weights. :meth:`observe` passes the inputs on to ``network``'s own input moments.
+
+    Examples:
+        >>> import torch
+        >>> value = StandardizedValue(PrivilegedValueNetwork(4, hidden=8))
+        >>> value.observe_targets(torch.tensor([10.0, 30.0]))  # mean 20, std 14.1
+        >>> raw = value.network(torch.zeros(1, 4))
+        >>> torch.allclose(value(torch.zeros(1, 4)), raw * 200 ** 0.5 + 20)
+        True
+        >>> value.in_keys
+        [('observation', 'privileged_state')]
+    """
+
+    def __init__(self, network: ValueNetwork | PrivilegedValueNetwork) -> None:
+        super().__init__()
+        self.network = network
+        self.in_keys = list(network.in_keys)
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("sum_sq", torch.zeros((), dtype=torch.float64))
+
+    def observe(self, *inputs: torch.Tensor) -> None:
+        """The network's running input moments take in ``inputs`` (a no-op for a network without them)."""
+        observe = getattr(self.network, "observe", None)
+        if observe is not None:
+            observe(*inputs)
+
+    def observe_targets(self, targets: torch.Tensor) -> None:
+        """Merge the value targets ``targets`` (any shape) into the running moments."""
+        merge_moments(self.count, self.mean, self.sum_sq, targets.reshape(-1))
+
+    def target_variance(self) -> torch.Tensor:
+        """The targets' running variance (1 before two are observed; floored at 1e-6), a float scalar."""
+        if self.count < 2:
+            return torch.ones(())
+        return (self.sum_sq / (self.count - 1)).clamp_min(1e-6).float()
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        out = self.network(*inputs)
+        if self.count < 2:
+            return out
+        return out * self.target_variance().sqrt().to(out.dtype) + self.mean.to(out.dtype)
+
+
+def make_value_operator(network: ValueNetwork | PrivilegedValueNetwork | StandardizedValue) -> ValueOperator:
     """The network as a TorchRL ``ValueOperator`` reading its ``in_keys``, writing ``"state_value"``."""
     return ValueOperator(network, in_keys=list(network.in_keys))
