@@ -1,4 +1,4 @@
-"""How well can the privileged-state critic fit a fine-tuning run's value targets, with and without scaled inputs?
+"""How well can the privileged-state critic fit a fine-tuning run's value targets, with and without scaled inputs and targets?
 
     python benchmarks/critic_fit.py \\
         --online runs/compare_pick_hold/PickCube-v1/mmada_gae_noise_privileged/s2/online_buffer
@@ -24,6 +24,16 @@ held-out targets' variance explained. The targets were made with the run's own
 critic, so this measures how well a critic of this form can follow them, not
 which advantages a better critic would have given.
 
+It then replays the run's critic as the recipe trains it: the rows in collection
+order, ``--online-batch`` decisions at a time; each batch is first scored (the
+error of the values GAE reads for those decisions' advantages) and then fitted
+``--online-epochs`` times in minibatches with the recipe's own
+:func:`~mmada_rl.policy.value.value_step`, for the recipe's critic
+(standardised, clipped input) learning the targets as they are and standardised
+by their running moments (:class:`~mmada_rl.policy.value.StandardizedValue`,
+``value.normalize_targets=true``). The errors are averaged over each fifth of
+the run.
+
 Writes ``benchmarks/results/critic_fit.{json,md,png}`` (``--name`` renames them).
 """
 from __future__ import annotations
@@ -40,7 +50,12 @@ from common import RESULTS, markdown_table, save_figure, write_results  # noqa: 
 from finetune_gradients import load_online_rows  # noqa: E402
 
 from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY  # noqa: E402
-from mmada_rl.policy.value import PrivilegedValueNetwork  # noqa: E402
+from mmada_rl.policy.value import (  # noqa: E402
+    PrivilegedValueNetwork,
+    StandardizedValue,
+    make_value_operator,
+    value_step,
+)
 
 #: each input scaling and the PrivilegedValueNetwork arguments that give it (the last is the recipe's critic)
 SCALINGS = {"raw": {"normalize": False}, "standardised": {"normalize": True, "clip": math.inf},
@@ -68,6 +83,33 @@ def fit(states, targets, fit_rows, held_out, *, scaling: str, hidden: int, lr: f
     return {**mse, "held_out_variance": variance, "explained": 1.0 - mse["held_out_mse"] / variance}
 
 
+#: the critics replayed in collection order: whether each learns standardised targets
+TARGETS = {"targets as they are": False, "standardised targets (value.normalize_targets)": True}
+PARTS = 5
+
+
+def replay(rows, *, standardized: bool, batch_decisions: int, epochs: int, hidden: int, lr: float, batch_size: int,
+           seed: int) -> dict:
+    """The recipe's critic over the run's rows in collection order: each batch of ``batch_decisions`` is scored
+    before it is fitted (``epochs`` passes in minibatches of ``batch_size``); the mean error of each fifth."""
+    torch.manual_seed(seed)
+    net = PrivilegedValueNetwork(rows.get(PRIVILEGED_STATE_KEY).shape[-1], hidden=hidden)
+    value_op = make_value_operator(StandardizedValue(net) if standardized else net)
+    optimizer = torch.optim.Adam(value_op.parameters(), lr=lr)
+    generator, errors = torch.Generator().manual_seed(seed), []
+    for start in range(0, len(rows) - batch_decisions + 1, batch_decisions):
+        batch = rows[start:start + batch_decisions]
+        with torch.no_grad():
+            pred = value_op(batch.select(*value_op.in_keys).clone()).get("state_value")
+            errors.append(float(torch.nn.functional.mse_loss(pred, batch.get(VALUE_TARGET_KEY).reshape(pred.shape))))
+        for _ in range(epochs):
+            for idx in torch.randperm(len(batch), generator=generator).split(batch_size):
+                value_step(value_op, optimizer, batch[idx], batch[idx].get(VALUE_TARGET_KEY))
+    bounds = [round(i * len(errors) / PARTS) for i in range(PARTS + 1)]
+    parts = [sum(errors[a:b]) / max(1, b - a) for a, b in zip(bounds, bounds[1:])]
+    return {"batches": len(errors), "error_by_fifth": parts, "mean_error": sum(errors) / max(1, len(errors))}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--online", type=Path, required=True,
@@ -77,12 +119,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hidden", type=int, default=256, help="critic width (default: 256, maniskill.yaml's value.hidden)")
     parser.add_argument("--lr", type=float, default=3e-4, help="learning rate (default: 3e-4, the recipe's value.lr)")
     parser.add_argument("--batch-size", type=int, default=64, help="rows per step (default: 64, maniskill.yaml's)")
+    parser.add_argument("--online-batch", type=int, default=40,
+                        help="decisions per batch of the collection-order replay (default: 40, maniskill.yaml's "
+                             "collector.decisions_per_batch)")
+    parser.add_argument("--online-epochs", type=int, default=4,
+                        help="passes over each batch in the replay (default: 4, maniskill.yaml's value.epochs)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="critic_fit")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
     if not 0.0 < args.holdout < 1.0 or args.steps < 1:
         parser.error("--holdout must lie in (0, 1) and --steps be >= 1.")
+    if args.online_batch < 1 or args.online_epochs < 1:
+        parser.error("--online-batch and --online-epochs must be >= 1.")
 
     rows = load_online_rows(args.online)
     if PRIVILEGED_STATE_KEY not in rows.keys(include_nested=True):
@@ -98,6 +147,12 @@ def main(argv: list[str] | None = None) -> int:
 
     results = {s: fit(states, targets, fit_rows, held_out, scaling=s, hidden=args.hidden, lr=args.lr,
                       batch_size=args.batch_size, steps=args.steps, seed=args.seed) for s in SCALINGS}
+    if len(rows) < PARTS * args.online_batch:
+        raise SystemExit(f"{args.online} holds {len(rows)} rows: too few for {PARTS} parts of --online-batch "
+                         f"{args.online_batch}.")
+    in_order = {name: replay(rows, standardized=standardized, batch_decisions=args.online_batch,
+                             epochs=args.online_epochs, hidden=args.hidden, lr=args.lr, batch_size=args.batch_size,
+                             seed=args.seed) for name, standardized in TARGETS.items()}
     spread = states[fit_rows].std(0)
     widest = spread.argsort(descending=True)[:3].tolist()
     table = markdown_table(["input", "held-out MSE", "fitting MSE", "held-out variance explained"],
@@ -107,21 +162,39 @@ def main(argv: list[str] | None = None) -> int:
                 f"{states.shape[-1]}-dimensional privileged state; value targets {float(targets.min()):.1f} to "
                 f"{float(targets.max()):.1f} (held-out variance {results['raw']['held_out_variance']:.1f}); "
                 f"{args.steps} steps of {args.batch_size} rows. The widest state dimensions: "
-                + ", ".join(f"{d} (std {float(spread[d]):.2f})" for d in widest) + ".\n\n" + table)
+                + ", ".join(f"{d} (std {float(spread[d]):.2f})" for d in widest) + ".\n\n" + table
+                + f"\n\n## In collection order\n\nThe recipe's critic (standardised, clipped input) over the rows as "
+                f"they were collected, {args.online_batch} decisions at a time, each batch scored before it is fitted "
+                f"({args.online_epochs} passes in minibatches of {args.batch_size}): the mean squared error of the "
+                f"values GAE would read, averaged over each fifth of the run (all targets' variance "
+                f"{float(targets.var()):.1f}).\n\n"
+                + markdown_table(["critic", *(f"fifth {i + 1}" for i in range(PARTS)), "mean"],
+                                 [[name, *(f"{e:.1f}" for e in r["error_by_fifth"]), f"{r['mean_error']:.1f}"]
+                                  for name, r in in_order.items()]))
     payload = {"online": str(args.online), "rows": len(rows), "fitted": len(fit_rows), "held_out": len(held_out),
                "steps": args.steps, "hidden": args.hidden, "lr": args.lr, "batch_size": args.batch_size,
-               "widest_dims": {str(d): float(spread[d]) for d in widest}, "results": results}
+               "widest_dims": {str(d): float(spread[d]) for d in widest}, "results": results,
+               "online_batch": args.online_batch, "online_epochs": args.online_epochs,
+               "target_variance": float(targets.var()), "in_order": in_order}
     json_path, md_path = write_results(args.name, payload, markdown, args.out)
 
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 3))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 3.2))
     ax.bar(range(len(SCALINGS)), [results[s]["explained"] for s in SCALINGS])
     ax.set_xticks(range(len(SCALINGS)), ["raw", "standardised", "std. + clip"])
     ax.set_ylabel("held-out variance explained")
     ax.set_title("privileged-state critic on the run's value targets")
+    for name, r in in_order.items():
+        ax2.plot(range(1, PARTS + 1), r["error_by_fifth"], marker="o", label=name)
+    ax2.axhline(float(targets.var()), color="grey", linestyle=":", label="targets' variance")
+    ax2.set_xticks(range(1, PARTS + 1))
+    ax2.set_xlabel("fifth of the run")
+    ax2.set_ylabel("error on each fresh batch")
+    ax2.set_title("in collection order")
+    ax2.legend(fontsize=7)
     png = save_figure(fig, args.out / f"{args.name}.png")
     print(markdown)
     print(f"wrote {json_path}, {md_path}, {png}")

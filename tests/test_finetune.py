@@ -201,7 +201,7 @@ def test_privileged_critic_standardises_its_input_by_running_moments():
     """Moments merged batch by batch equal those of all the states at once; the value step feeds them; without
     ``normalize`` (or before any state) the MLP reads the raw state."""
     from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY
-    from mmada_rl.policy.value import PrivilegedValueNetwork, make_value_operator
+    from mmada_rl.policy.value import PrivilegedValueNetwork, make_value_operator, value_step
 
     utils = recipe_utils()
     torch.manual_seed(0)
@@ -228,8 +228,8 @@ def test_privileged_critic_standardises_its_input_by_running_moments():
     value_op = make_value_operator(PrivilegedValueNetwork(6, hidden=8))
     rows = TensorDict({PRIVILEGED_STATE_KEY: states, VALUE_TARGET_KEY: torch.ones(50, 1)}, batch_size=[50])
     optimizer = torch.optim.Adam(value_op.parameters(), lr=1e-3)
-    utils.value_step(value_op, optimizer, rows[:10], rows[:10].get(VALUE_TARGET_KEY))
-    utils.value_step(value_op, optimizer, rows[10:], rows[10:].get(VALUE_TARGET_KEY))
+    value_step(value_op, optimizer, rows[:10], rows[:10].get(VALUE_TARGET_KEY))
+    value_step(value_op, optimizer, rows[10:], rows[10:].get(VALUE_TARGET_KEY))
     assert int(value_op.module.count) == 50 and "module.count" in value_op.state_dict()
 
 
@@ -240,7 +240,7 @@ def test_standardized_critic_learns_large_targets_faster_and_answers_in_their_un
     from omegaconf import OmegaConf
 
     from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY
-    from mmada_rl.policy.value import PrivilegedValueNetwork, StandardizedValue, make_value_operator
+    from mmada_rl.policy.value import PrivilegedValueNetwork, StandardizedValue, make_value_operator, value_step
 
     utils = recipe_utils()
     cfg = OmegaConf.load(RECIPE.parent / "config" / "toy.yaml")
@@ -264,7 +264,7 @@ def test_standardized_critic_learns_large_targets_faster_and_answers_in_their_un
         optimizer = torch.optim.Adam(op.parameters(), lr=3e-4)
         for step in range(60):  # what a run's critic gets in its first fifteen iterations
             batch = fit[(step * 32) % 300:][:32]
-            utils.value_step(op, optimizer, batch, batch.get(VALUE_TARGET_KEY))
+            value_step(op, optimizer, batch, batch.get(VALUE_TARGET_KEY))
         with torch.no_grad():
             error = float(torch.nn.functional.mse_loss(op(held_out.clone()).get("state_value"), held_out.get(VALUE_TARGET_KEY)))
         return op, error
@@ -842,11 +842,14 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         bench = load_script("benchmarks/critic_fit.py", "critic_fit")
         out = tmp_path / "critic_fit"
         assert bench.main(["--online", str(tmp_path / name / "online_buffer"), "--steps", "3", "--holdout", "0.5",
-                           "--batch-size", "4", "--hidden", "16", "--out", str(out)]) == 0
+                           "--batch-size", "4", "--hidden", "16", "--online-batch", "1", "--online-epochs", "2",
+                           "--out", str(out)]) == 0
         fitted = json.loads((out / "critic_fit.json").read_text())
         assert fitted["fitted"] + fitted["held_out"] == fitted["rows"] >= 4
         assert list(fitted["results"]) == ["raw", "standardised", "standardised, clipped to [-5, 5]"]
         assert all(math.isfinite(r["held_out_mse"]) and r["held_out_mse"] >= 0 for r in fitted["results"].values())
+        assert list(fitted["in_order"]) == ["targets as they are", "standardised targets (value.normalize_targets)"]
+        assert all(r["batches"] == fitted["rows"] and len(r["error_by_fifth"]) == 5 for r in fitted["in_order"].values())
         assert (out / "critic_fit.png").stat().st_size > 0
     if name == "noisy_privileged_standardized":  # the checkpoint holds the critic's target and input moments
         value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]

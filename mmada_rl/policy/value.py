@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from tensordict import TensorDictBase
 from torchrl.modules import ValueOperator
 
 from mmada_rl.baselines.encoders import EncoderConfig, ObservationEncoder
 from mmada_rl.keys import IMAGE_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 
-__all__ = ["PrivilegedValueNetwork", "StandardizedValue", "ValueNetwork", "make_value_operator"]
+__all__ = ["PrivilegedValueNetwork", "StandardizedValue", "ValueNetwork", "make_value_operator", "value_step"]
 
 
 @torch.no_grad()
@@ -176,3 +177,25 @@ class StandardizedValue(nn.Module):
 def make_value_operator(network: ValueNetwork | PrivilegedValueNetwork | StandardizedValue) -> ValueOperator:
     """The network as a TorchRL ``ValueOperator`` reading its ``in_keys``, writing ``"state_value"``."""
     return ValueOperator(network, in_keys=list(network.in_keys))
+
+
+def value_step(value_op, value_optim, observations: TensorDictBase, targets: torch.Tensor) -> float:
+    """One gradient step of the mean squared error of ``V(o)`` (the entries of ``observations`` the critic
+    reads) against ``targets``; returns the loss. The fine-tuning recipe's online regression and warm start take
+    it. A critic with running input moments (:meth:`PrivilegedValueNetwork.observe`) first takes in these inputs;
+    a :class:`StandardizedValue` also these targets, and steps on the error over their running variance (the
+    standardised error; the loss returned stays in the targets' units)."""
+    inputs = observations.select(*value_op.in_keys).clone()
+    module = value_op.module
+    observe = getattr(module, "observe", None)
+    if observe is not None:
+        observe(*(inputs.get(key) for key in value_op.in_keys))
+    standardized = isinstance(module, StandardizedValue)
+    if standardized:
+        module.observe_targets(targets)
+    pred = value_op(inputs).get("state_value")
+    loss = torch.nn.functional.mse_loss(pred, targets.reshape(pred.shape).to(pred.dtype))
+    value_optim.zero_grad(set_to_none=True)
+    (loss / module.target_variance() if standardized else loss).backward()
+    value_optim.step()
+    return float(loss.detach())

@@ -95,9 +95,9 @@ from utils import (
     open_demo_buffer,
     pretrain_value,
     split_batch,
-    value_step,
 )
 from mmada_rl.keys import SUCCESS_KEY, VALUE_TARGET_KEY
+from mmada_rl.policy.value import value_step
 
 BUFFER_DIR = "online_buffer"
 

@@ -46,7 +46,13 @@ from mmada_rl.objectives.advantages import absorbing_success_reward, group_relat
 from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAEnsemble, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
-from mmada_rl.policy.value import PrivilegedValueNetwork, StandardizedValue, ValueNetwork, make_value_operator
+from mmada_rl.policy.value import (
+    PrivilegedValueNetwork,
+    StandardizedValue,
+    ValueNetwork,
+    make_value_operator,
+    value_step,
+)
 from mmada_rl.training.checkpoint import CONFIG_FILE
 from mmada_rl.training.demos import open_demos
 
@@ -254,28 +260,6 @@ def make_value(cfg: DictConfig, model: MMaDAModel, demos: DemoBuffer):
     operator = make_value_operator(net).to(cfg.device)
     optimizer = training.make_optimizer(operator.parameters(), lr=float(cfg.value.lr), weight_decay=0.0)
     return operator, optimizer
-
-
-def value_step(value_op, value_optim, observations: TensorDictBase, targets: torch.Tensor) -> float:
-    """One gradient step of the mean squared error of ``V(o)`` (the entries of ``observations`` the critic reads)
-    against ``targets``; returns the loss. Both the online regression and the warm start take it. A critic with
-    running input moments (:meth:`~mmada_rl.policy.value.PrivilegedValueNetwork.observe`) first takes in these inputs;
-    a :class:`~mmada_rl.policy.value.StandardizedValue` also these targets, and steps on the error over their running
-    variance (the standardised error; the loss returned stays in the targets' units)."""
-    inputs = observations.select(*value_op.in_keys).clone()
-    module = value_op.module
-    observe = getattr(module, "observe", None)
-    if observe is not None:
-        observe(*(inputs.get(key) for key in value_op.in_keys))
-    standardized = isinstance(module, StandardizedValue)
-    if standardized:
-        module.observe_targets(targets)
-    pred = value_op(inputs).get("state_value")
-    loss = torch.nn.functional.mse_loss(pred, targets.reshape(pred.shape).to(pred.dtype))
-    value_optim.zero_grad(set_to_none=True)
-    (loss / module.target_variance() if standardized else loss).backward()
-    value_optim.step()
-    return float(loss.detach())
 
 
 def demo_value_targets(cfg: DictConfig, demos: DemoBuffer) -> torch.Tensor:
