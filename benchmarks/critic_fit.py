@@ -34,6 +34,11 @@ by their running moments (:class:`~mmada_rl.policy.value.StandardizedValue`,
 ``value.normalize_targets=true``). The errors are averaged over each fifth of
 the run.
 
+Last, what the run's own critic gave: the correlation of the stored advantages
+with the stored value targets (the λ-returns) over each fifth of the run. Near
+1, the critic's values hardly vary between states and the advantages rank the
+decisions by the return that followed them.
+
 Writes ``benchmarks/results/critic_fit.{json,md,png}`` (``--name`` renames them).
 """
 from __future__ import annotations
@@ -49,7 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
 from finetune_gradients import load_online_rows  # noqa: E402
 
-from mmada_rl.keys import PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY  # noqa: E402
+from mmada_rl.keys import ADVANTAGE_KEY, PRIVILEGED_STATE_KEY, VALUE_TARGET_KEY  # noqa: E402
 from mmada_rl.policy.value import (  # noqa: E402
     PrivilegedValueNetwork,
     StandardizedValue,
@@ -105,9 +110,23 @@ def replay(rows, *, standardized: bool, batch_decisions: int, epochs: int, hidde
         for _ in range(epochs):
             for idx in torch.randperm(len(batch), generator=generator).split(batch_size):
                 value_step(value_op, optimizer, batch[idx], batch[idx].get(VALUE_TARGET_KEY))
-    bounds = [round(i * len(errors) / PARTS) for i in range(PARTS + 1)]
-    parts = [sum(errors[a:b]) / max(1, b - a) for a, b in zip(bounds, bounds[1:])]
+    parts = [sum(errors[a:b]) / max(1, b - a) for a, b in fifths(len(errors))]
     return {"batches": len(errors), "error_by_fifth": parts, "mean_error": sum(errors) / max(1, len(errors))}
+
+
+def fifths(n: int) -> list[tuple[int, int]]:
+    """``[start, stop)`` of each fifth of ``n`` items in order."""
+    bounds = [round(i * n / PARTS) for i in range(PARTS + 1)]
+    return list(zip(bounds, bounds[1:]))
+
+
+def stored_correlation(rows) -> list[float]:
+    """The correlation of the run's stored advantages with its stored value targets, per fifth of the rows (NaN for
+    a fifth of fewer than two rows)."""
+    advantages = rows.get(ADVANTAGE_KEY).float().reshape(-1)
+    targets = rows.get(VALUE_TARGET_KEY).float().reshape(-1)
+    return [float(torch.corrcoef(torch.stack([advantages[a:b], targets[a:b]]))[0, 1]) if b - a >= 2 else math.nan
+            for a, b in fifths(len(rows))]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -153,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     in_order = {name: replay(rows, standardized=standardized, batch_decisions=args.online_batch,
                              epochs=args.online_epochs, hidden=args.hidden, lr=args.lr, batch_size=args.batch_size,
                              seed=args.seed) for name, standardized in TARGETS.items()}
+    correlation = stored_correlation(rows)
     spread = states[fit_rows].std(0)
     widest = spread.argsort(descending=True)[:3].tolist()
     table = markdown_table(["input", "held-out MSE", "fitting MSE", "held-out variance explained"],
@@ -170,12 +190,16 @@ def main(argv: list[str] | None = None) -> int:
                 f"{float(targets.var()):.1f}).\n\n"
                 + markdown_table(["critic", *(f"fifth {i + 1}" for i in range(PARTS)), "mean"],
                                  [[name, *(f"{e:.1f}" for e in r["error_by_fifth"]), f"{r['mean_error']:.1f}"]
-                                  for name, r in in_order.items()]))
+                                  for name, r in in_order.items()])
+                + "\n\n## What the run's critic gave\n\nThe correlation of the run's stored advantages with its "
+                "stored value targets, per fifth of the run: "
+                + ", ".join(f"{c:.2f}" for c in correlation) + ".")
     payload = {"online": str(args.online), "rows": len(rows), "fitted": len(fit_rows), "held_out": len(held_out),
                "steps": args.steps, "hidden": args.hidden, "lr": args.lr, "batch_size": args.batch_size,
                "widest_dims": {str(d): float(spread[d]) for d in widest}, "results": results,
                "online_batch": args.online_batch, "online_epochs": args.online_epochs,
-               "target_variance": float(targets.var()), "in_order": in_order}
+               "target_variance": float(targets.var()), "in_order": in_order,
+               "advantage_target_correlation_by_fifth": correlation}
     json_path, md_path = write_results(args.name, payload, markdown, args.out)
 
     import matplotlib

@@ -850,6 +850,7 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert all(math.isfinite(r["held_out_mse"]) and r["held_out_mse"] >= 0 for r in fitted["results"].values())
         assert list(fitted["in_order"]) == ["targets as they are", "standardised targets (value.normalize_targets)"]
         assert all(r["batches"] == fitted["rows"] and len(r["error_by_fifth"]) == 5 for r in fitted["in_order"].values())
+        assert len(fitted["advantage_target_correlation_by_fifth"]) == 5
         assert (out / "critic_fit.png").stat().st_size > 0
     if name == "noisy_privileged_standardized":  # the checkpoint holds the critic's target and input moments
         value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]
