@@ -163,12 +163,12 @@ def main(argv: list[str] | None = None) -> int:
     fit_rows, held_out = order[:split], order[split:]
     if len(fit_rows) < 2 or len(held_out) < 2:
         raise SystemExit(f"{args.online} holds {len(rows)} rows: too few to fit and score (--holdout {args.holdout}).")
-
-    results = {s: fit(states, targets, fit_rows, held_out, scaling=s, hidden=args.hidden, lr=args.lr,
-                      batch_size=args.batch_size, steps=args.steps, seed=args.seed) for s in SCALINGS}
     if len(rows) < PARTS * args.online_batch:
         raise SystemExit(f"{args.online} holds {len(rows)} rows: too few for {PARTS} parts of --online-batch "
                          f"{args.online_batch}.")
+
+    results = {s: fit(states, targets, fit_rows, held_out, scaling=s, hidden=args.hidden, lr=args.lr,
+                      batch_size=args.batch_size, steps=args.steps, seed=args.seed) for s in SCALINGS}
     in_order = {name: replay(rows, standardized=standardized, batch_decisions=args.online_batch,
                              epochs=args.online_epochs, hidden=args.hidden, lr=args.lr, batch_size=args.batch_size,
                              seed=args.seed) for name, standardized in TARGETS.items()}
