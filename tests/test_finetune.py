@@ -19,7 +19,8 @@ from mmada_rl.data.windows import no_start_steps
 from mmada_rl.diffusion.path import path_log_prob, sample_steps, select_steps
 from mmada_rl.envs.maniskill import make_env
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY
-from mmada_rl.keys import ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.keys import (ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY,
+                           VALUE_TARGET_KEY)
 from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import group_relative_advantages
@@ -405,6 +406,24 @@ def test_episode_returns_as_advantages_wait_for_the_episode_to_end():
     assert groups.add(batch([0.0, 0.0], [False, False], [6, 6])) == []  # episode 2 still running
     (second,) = groups.add(batch([0.0], [True], [6]))
     assert second.shape == (4,) and second.get(ADVANTAGE_KEY).tolist() == [0.0] * 4  # failed: filtered out by binary weights
+
+
+def test_returns_to_go_as_advantages_discount_each_decisions_future():
+    """estimator=return_to_go: each decision gets its own discounted return to the episode's end, once it has ended."""
+    groups = recipe_utils().EpisodeGroups(1, relative=False, discount=0.5)
+
+    def batch(rewards, dones, seed):
+        n = len(rewards)
+        return TensorDict({("next", "reward"): torch.tensor(rewards).reshape(n, 1), ("next", "done"): torch.tensor(dones).reshape(n, 1),
+                           GROUP_KEY: torch.full((n, 1), seed)}, [n])
+
+    assert groups.add(batch([1.0, 2.0], [False, False], 5)) == []  # the episode runs on into the next batch
+    (episode,) = groups.add(batch([4.0, 8.0], [False, True], 5))
+    # G_3 = 8, G_2 = 4 + 0.5 * 8, G_1 = 2 + 0.5 * 8, G_0 = 1 + 0.5 * 6
+    assert episode.get(ADVANTAGE_KEY).tolist() == [4.0, 6.0, 8.0, 8.0]
+    assert episode.get(VALUE_TARGET_KEY).reshape(-1).tolist() == [4.0, 6.0, 8.0, 8.0]
+    with pytest.raises(ValueError, match="one rollout per initial state"):
+        recipe_utils().EpisodeGroups(2, relative=True, discount=0.5)
 
 
 def test_weight_goal_applies_the_row_weights_to_the_goal_tokens(model, toy_pretrain_run):
@@ -814,6 +833,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
                                        "value.normalize_targets=true", "loss.rwr.weighting=signed",
                                        "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1",
                                        "eval.episodes=0"], 30),
+    ("noisy_return_to_go", ["advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
+                            "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0"], 30),
 ])
 def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -831,6 +852,12 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
         assert any(float(line.split(",")[1]) > 0 for line in (scalars / "negative_fraction.csv").read_text().splitlines())
+    if name == "noisy_return_to_go":  # no critic was fitted, and the stored advantages are the returns to go
+        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        assert not (scalars / "value_loss.csv").exists() and (scalars / "advantage_abs.csv").read_text().strip()
+        storage = tmp_path / name / "online_buffer" / "storage"
+        rows = TensorDict.load_memmap(storage)[: json.loads((storage / "storage_metadata.json").read_text())["len"]]
+        assert len(rows) and torch.equal(rows.get(ADVANTAGE_KEY).reshape(-1), rows.get(VALUE_TARGET_KEY).reshape(-1))
     if name == "noisy_privileged_critic":  # GAE's critic read the simulator's state, the policy its pixels
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()

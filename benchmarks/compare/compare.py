@@ -83,6 +83,9 @@ _GAE_NOISE_PRIVILEGED = [*_GAE_NOISE_ABSORBING, "value.input=privileged_state"]
 _GAE_NOISE_PRIVILEGED_RAW = [*_GAE_NOISE_PRIVILEGED, "value.normalize_privileged=false"]
 #: the standardised privileged critic learning alone on the first 10k env steps' rollouts (DPPO's critic warm-up)
 _GAE_NOISE_PRIVILEGED_WARMUP = [*_GAE_NOISE_PRIVILEGED, "value.warmup_env_steps=10000"]
+#: no critic: each chunk's discounted return to its episode's end (success absorbing) as its advantage, standardised
+#: over the batch's online rows as a signed weight (what the privileged critic's advantages turned out to track)
+_RETURN_TO_GO_NOISE = [a.replace("estimator=gae", "estimator=return_to_go") for a in _GAE_NOISE_ABSORBING]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -152,6 +155,11 @@ METHODS = {
                                                   "value normalisation)", "rgb+proprio",
                                                   [*_keep_pretraining_loss(_GAE_NOISE_PRIVILEGED),
                                                    "value.normalize_targets=true"], True),
+    "mmada_return_to_go_noise_keep": ("MMaDA-VLA + each chunk's discounted return to the episode's end as its "
+                                      "advantage (no critic), success absorbing, zero-mean signed weights, on the "
+                                      "greedy policy's noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, "
+                                      "goals weighted too; the pretraining run's regularisers kept)", "rgb+proprio",
+                                      _keep_pretraining_loss(_RETURN_TO_GO_NOISE), True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",

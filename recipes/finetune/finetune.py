@@ -142,7 +142,7 @@ def main(cfg: DictConfig) -> None:
     demos = open_demo_buffer(cfg, model)
     value_op, value_optim = make_value(cfg, model, demos)
     gae = make_gae(cfg, value_op, model) if cfg.advantage.estimator == "gae" else None
-    groups = make_episode_groups(cfg)
+    groups = make_episode_groups(cfg, model)
     loss_module = make_loss(cfg, model)
     demo_anchor = make_demo_anchor(cfg, model)
     optimizer = make_optim(cfg, model)

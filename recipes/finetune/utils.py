@@ -58,7 +58,7 @@ from mmada_rl.training.demos import open_demos
 
 PREFIX = "[finetune]"
 ALGOS = ("rwr", "ppo")
-ESTIMATORS = ("gae", "group", "return")
+ESTIMATORS = ("gae", "group", "return", "return_to_go")
 #: what GAE's critic reads: the policy's observation (image and proprio state) or the simulator's privileged state
 VALUE_INPUTS = ("observation", "privileged_state")
 
@@ -69,7 +69,7 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.algo not in ALGOS:
         raise ValueError(f"algo={cfg.algo!r} is not a fine-tuning algorithm; use algo=rwr or algo=ppo.")
     if cfg.advantage.estimator not in ESTIMATORS:
-        raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae, group or return.")
+        raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae, group, return or return_to_go.")
     if cfg.pretrained is None:
         raise ValueError("pretrained=null: pass the pretraining run (pretrained=runs/pretrain_...) or a checkpoint/model directory.")
     if not 0.0 <= float(cfg.demos.ratio) <= 1.0:
@@ -365,10 +365,18 @@ class EpisodeGroups:
     every decision of an episode is its return standardised within the group
     (``relative=True``, GRPO-style) or the return itself (``relative=False``,
     ``G = 1``: with a sparse success reward, 1 for a successful episode, 0 otherwise).
+
+    With ``discount`` (the per-decision discount ``gamma ** k``; ``G = 1``, not relative)
+    each decision's advantage is instead its own discounted return from that chunk to
+    the episode's end (REINFORCE's reward-to-go), ``G_t = r_t + discount * G_{t+1}``:
+    no critic, so no bootstrap either, and an episode cut by the time limit counts
+    nothing after its last step.
     """
 
-    def __init__(self, group_size: int, relative: bool = True) -> None:
-        self.group_size, self.relative = int(group_size), bool(relative)
+    def __init__(self, group_size: int, relative: bool = True, discount: float | None = None) -> None:
+        if discount is not None and (group_size != 1 or relative):
+            raise ValueError("per-decision returns (discount) take one rollout per initial state and no group baseline.")
+        self.group_size, self.relative, self.discount = int(group_size), bool(relative), discount
         self.running: dict[int, list[TensorDictBase]] = {}  # worker -> decisions of its unfinished episode
         self.groups: dict[int, list[TensorDictBase]] = {}  # seed -> finished episodes
 
@@ -394,6 +402,12 @@ class EpisodeGroups:
         return ready
 
     def _finish(self, episodes: list[TensorDictBase], seed: int) -> list[TensorDictBase]:
+        if self.discount is not None:
+            for ep in episodes:
+                to_go = returns_to_go(ep.get(("next", "reward")).reshape(-1), self.discount)
+                ep.set(ADVANTAGE_KEY, to_go.reshape(ep.shape))
+                ep.set(VALUE_TARGET_KEY, to_go.reshape(*ep.shape, 1))
+            return episodes
         returns = torch.stack([ep.get(("next", "reward")).sum() for ep in episodes])
         adv = group_relative_advantages(returns, torch.full_like(returns, seed, dtype=torch.long)) if self.relative else returns
         for ep, a, ret in zip(episodes, adv, returns):
@@ -402,10 +416,14 @@ class EpisodeGroups:
         return episodes
 
 
-def make_episode_groups(cfg: DictConfig) -> EpisodeGroups | None:
-    """Critic-free advantages: group-relative (``group``) or plain (``return``) episode returns; ``None`` for GAE."""
+def make_episode_groups(cfg: DictConfig, model: MMaDAModel) -> EpisodeGroups | None:
+    """Critic-free advantages: group-relative (``group``) or plain (``return``) episode returns, or each decision's
+    discounted return to the episode's end (``return_to_go``, discount ``gamma ** k`` per decision); ``None`` for GAE."""
     if cfg.advantage.estimator == "group":
         return EpisodeGroups(int(cfg.advantage.group_size))
+    if cfg.advantage.estimator == "return_to_go":
+        k = int(cfg.collector.execute_steps or model.config.chunk_size)
+        return EpisodeGroups(1, relative=False, discount=float(cfg.advantage.gamma) ** k)
     return EpisodeGroups(1, relative=False) if cfg.advantage.estimator == "return" else None
 
 
