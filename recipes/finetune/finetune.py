@@ -7,6 +7,8 @@
     python recipes/finetune/finetune.py ... env.reward=sparse advantage.estimator=return loss.rwr.weighting=binary
     python recipes/finetune/finetune.py ... env.reward=sparse advantage.estimator=return loss.rwr.weighting=binary \
         collector.action_noise=0.1 loss.rwr.weight_goal=true   # the greedy policy's noisy successes imitated
+    python recipes/finetune/finetune.py ... advantage.estimator=return_to_go loss.rwr.weighting=signed \
+        loss.rwr.standardize_advantage=true collector.action_noise=0.05   # per-chunk returns, no critic
     python recipes/finetune/finetune.py ... checkpoint.resume=true                          # continue the run
 
 Each iteration, TorchRL's ``Collector`` runs the actor with sampled
@@ -16,7 +18,9 @@ Advantages per decision come from a learned value function with TorchRL's GAE
 (discount ``gamma ** k``) or, critic-free, from returns standardised within groups
 of rollouts that share an initial state (``group``) or from the episode's return
 itself (``return``; with ``env.reward=sparse`` and ``loss.rwr.weighting=binary``
-the online rows are the successful rollouts: filtered self-imitation). Episodes end
+the online rows are the successful rollouts: filtered self-imitation) or each
+decision's own discounted return to the episode's end (``return_to_go``, discount
+``gamma ** k`` per decision, nothing bootstrapped). Episodes end
 at the first success; with ``advantage.absorbing_success=true`` (the default) the
 chunk that succeeds also earns the discounted value of staying in success at the
 best per-step reward, ``gamma**j / (1 - gamma)``, so that finishing is worth more than
