@@ -296,10 +296,16 @@ def pretrain_value(cfg: DictConfig, value_op, value_optim, demos: DemoBuffer) ->
     return sum(tail) / len(tail)
 
 
-def make_gae(cfg: DictConfig, value_operator, model: MMaDAModel) -> GAE:
-    """TorchRL's GAE over decisions: consecutive decisions are ``k`` env steps apart (discount ``gamma ** k``)."""
+def decision_discount(cfg: DictConfig, model: MMaDAModel) -> float:
+    """The discount between consecutive decisions, ``gamma ** k``: they are ``k`` env steps apart (``k`` executed
+    actions per chunk, the whole chunk unless ``collector.execute_steps``)."""
     k = int(cfg.collector.execute_steps or model.config.chunk_size)
-    return GAE(gamma=float(cfg.advantage.gamma) ** k, lmbda=float(cfg.advantage.lmbda), value_network=value_operator,
+    return float(cfg.advantage.gamma) ** k
+
+
+def make_gae(cfg: DictConfig, value_operator, model: MMaDAModel) -> GAE:
+    """TorchRL's GAE over decisions, discounted by :func:`decision_discount`."""
+    return GAE(gamma=decision_discount(cfg, model), lmbda=float(cfg.advantage.lmbda), value_network=value_operator,
                average_gae=False)
 
 
@@ -422,8 +428,7 @@ def make_episode_groups(cfg: DictConfig, model: MMaDAModel) -> EpisodeGroups | N
     if cfg.advantage.estimator == "group":
         return EpisodeGroups(int(cfg.advantage.group_size))
     if cfg.advantage.estimator == "return_to_go":
-        k = int(cfg.collector.execute_steps or model.config.chunk_size)
-        return EpisodeGroups(1, relative=False, discount=float(cfg.advantage.gamma) ** k)
+        return EpisodeGroups(1, relative=False, discount=decision_discount(cfg, model))
     return EpisodeGroups(1, relative=False) if cfg.advantage.estimator == "return" else None
 
 
