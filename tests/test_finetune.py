@@ -49,6 +49,15 @@ def model(toy_pretrain_run) -> MMaDAModel:
     return MMaDAModel.load(toy_pretrain_run / "checkpoints" / "step_00000006" / "model").eval()
 
 
+def test_learning_rate_is_constant_or_decays_with_the_env_steps():
+    utils = recipe_utils()
+    cfg = OmegaConf.create({"optim": {"lr": 1e-4}, "collector": {"total_env_steps": 1000}})
+    assert utils.learning_rate(cfg, 0) == utils.learning_rate(cfg, 1000) == 1e-4  # no optim.lr_decay: constant
+    cfg.optim.update(lr_decay="cosine", min_lr_ratio=0.2)
+    assert [utils.learning_rate(cfg, s) for s in (0, 500, 1000, 2000)] == pytest.approx([1e-4, 0.6e-4, 0.2e-4, 0.2e-4])
+    assert utils.learning_rate(cfg, 250) == pytest.approx(1e-4 * (0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi / 4))))
+
+
 # -- chunk rewards and seeds ----------------------------------------------------------------
 def test_chunk_reward_is_the_discounted_sum_of_the_executed_steps():
     log = StepLog(["reward"])
@@ -834,7 +843,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
                                        "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1",
                                        "eval.episodes=0"], 30),
     ("noisy_return_to_go", ["advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
-                            "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0"], 30),
+                            "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0",
+                            "optim.lr=1e-4", "optim.lr_decay=cosine"], 30),
 ])
 def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -857,6 +867,10 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert not (scalars / "value_loss.csv").exists() and (scalars / "advantage_abs.csv").read_text().strip()
         rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(tmp_path / name / "online_buffer")
         assert len(rows) and torch.equal(rows.get(ADVANTAGE_KEY).reshape(-1), rows.get(VALUE_TARGET_KEY).reshape(-1))
+        # optim.lr_decay=cosine: each iteration's rate, logged at its env steps, falls to 0.1 x 1e-4 at the budget
+        lrs = [tuple(map(float, line.split(","))) for line in (scalars / "lr.csv").read_text().split()]
+        assert len(lrs) >= 2 and all(b[1] < a[1] for a, b in zip(lrs, lrs[1:]))
+        assert lrs[0][1] < 1e-4 and lrs[-1][0] >= steps and lrs[-1][1] == pytest.approx(1e-5)
     if name == "noisy_privileged_critic":  # GAE's critic read the simulator's state, the policy its pixels
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
@@ -1000,6 +1014,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["loss.action_mean_weight=1"], "needs ordered bin tokens (tokenizers.action_type=bins), not a VQActionTokenizer"),
     (["demos.random_shift=-1"], "demos.random_shift=-1 must be a whole number of pixels >= 0"),
     (["value.warmup_env_steps=10", "advantage.estimator=return"], "use advantage.estimator=gae or value.warmup_env_steps=0"),
+    (["optim.lr_decay=linear"], "optim.lr_decay='linear'; use constant or cosine"),
+    (["optim.min_lr_ratio=2"], "optim.min_lr_ratio must lie in [0, 1]"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -163,6 +163,10 @@ METHODS = {
     "mmada_return_to_go_noise_keep_lr1e4": ("mmada_return_to_go_noise_keep at the learning rate 1e-4 (3.3x the "
                                             "recipe's 3e-5; ours)", "rgb+proprio",
                                             [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_cosine": ("mmada_return_to_go_noise_keep_lr1e4 with the learning rate "
+                                                   "decayed along a cosine to 1e-5 over the budget (ours)", "rgb+proprio",
+                                                   [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
+                                                    "optim.lr_decay=cosine", "optim.min_lr_ratio=0.1"], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",

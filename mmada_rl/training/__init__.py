@@ -8,12 +8,13 @@ from mmada_rl.training.checkpoint import (
     save_checkpoint,
 )
 from mmada_rl.training.ema import WeightEMA, ema_applied, ema_checkpointed, resume_own_weights
-from mmada_rl.training.optim import make_optimizer, make_scheduler, optimizer_step
+from mmada_rl.training.optim import cosine_decay, make_optimizer, make_scheduler, optimizer_step
 from mmada_rl.training.run import require_cpu, start_run
 
 __all__ = [
     "Checkpoint",
     "WeightEMA",
+    "cosine_decay",
     "ema_applied",
     "ema_checkpointed",
     "latest_checkpoint",

@@ -13,6 +13,15 @@ def make_optimizer(params, *, lr: float, weight_decay: float = 0.01, betas=(0.9,
     return torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay, betas=tuple(betas))
 
 
+def cosine_decay(progress: float, min_lr_ratio: float = 0.1) -> float:
+    """The fraction of the base rate at ``progress`` (0 at the start, 1 at the end, clamped) of a cosine decay
+    from 1 to ``min_lr_ratio``."""
+    if not 0.0 <= min_lr_ratio <= 1.0:
+        raise ValueError(f"min_lr_ratio must lie in [0, 1], got {min_lr_ratio!r}.")
+    progress = min(1.0, max(0.0, progress))
+    return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
 def make_scheduler(optimizer, *, warmup_steps: int, total_steps: int, min_lr_ratio: float = 0.1):
     """Linear warm-up to the base rate, then cosine decay to ``min_lr_ratio`` of it at ``total_steps``."""
     if total_steps < 1 or warmup_steps < 0:
@@ -21,8 +30,7 @@ def make_scheduler(optimizer, *, warmup_steps: int, total_steps: int, min_lr_rat
     def factor(step: int) -> float:
         if step < warmup_steps:
             return (step + 1) / warmup_steps
-        progress = min(1.0, (step - warmup_steps) / max(1, total_steps - warmup_steps))
-        return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+        return cosine_decay((step - warmup_steps) / max(1, total_steps - warmup_steps), min_lr_ratio)
 
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
 

@@ -9,6 +9,7 @@
         collector.action_noise=0.1 loss.rwr.weight_goal=true   # the greedy policy's noisy successes imitated
     python recipes/finetune/finetune.py ... advantage.estimator=return_to_go loss.rwr.weighting=signed \
         loss.rwr.standardize_advantage=true collector.action_noise=0.05   # per-chunk returns, no critic
+    python recipes/finetune/finetune.py ... optim.lr=1e-4 optim.lr_decay=cosine    # lr to 0.1 x 1e-4 over the budget
     python recipes/finetune/finetune.py ... checkpoint.resume=true                          # continue the run
 
 Each iteration, TorchRL's ``Collector`` runs the actor with sampled
@@ -82,6 +83,7 @@ from utils import (
     ensemble_partners,
     executed_steps,
     exploration_sampler,
+    learning_rate,
     load_pretrained,
     make_collector,
     make_demo_anchor,
@@ -251,6 +253,10 @@ def main(cfg: DictConfig) -> None:
                     metrics["train/value_loss"] = update_value(cfg, value_op, value_optim, rows)
 
             t1, stepped = time.perf_counter(), []  # each gradient step's losses and grad norm, averaged for the log
+            lr = learning_rate(cfg, env_steps)  # optim.lr_decay=cosine: lower as the budget is spent
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            metrics["train/lr"] = lr
             if warming:
                 metrics["train/critic_warmup"] = 1.0
             elif cfg.algo == "rwr":

@@ -61,6 +61,7 @@ ALGOS = ("rwr", "ppo")
 ESTIMATORS = ("gae", "group", "return", "return_to_go")
 #: what GAE's critic reads: the policy's observation (image and proprio state) or the simulator's privileged state
 VALUE_INPUTS = ("observation", "privileged_state")
+LR_DECAYS = ("constant", "cosine")
 
 
 def check_config(cfg: DictConfig) -> None:
@@ -113,6 +114,10 @@ def check_config(cfg: DictConfig) -> None:
     if absorbs_success(cfg) and not 0.0 < float(cfg.advantage.gamma) < 1.0:
         raise ValueError(f"advantage.absorbing_success=true values a success at 1 / (1 - gamma): it needs "
                          f"advantage.gamma < 1, got {cfg.advantage.gamma!r}.")
+    if cfg.optim.get("lr_decay", "constant") not in LR_DECAYS:
+        raise ValueError(f"optim.lr_decay={cfg.optim.lr_decay!r}; use constant or cosine.")
+    if not 0.0 <= float(cfg.optim.get("min_lr_ratio", 0.1)) <= 1.0:
+        raise ValueError(f"optim.min_lr_ratio must lie in [0, 1], got {cfg.optim.min_lr_ratio!r}.")
     last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
     if last > EVAL_SEED_BASE:
         raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
@@ -581,6 +586,17 @@ def make_optim(cfg: DictConfig, model: MMaDAModel):
         model.denoiser.visual_encoder.cnn.requires_grad_(False)
         print("[finetune] the denoiser's CNN stays fixed (optim.freeze_visual_encoder)")
     return training.make_optimizer(model.denoiser.parameters(), lr=float(cfg.optim.lr), weight_decay=float(cfg.optim.weight_decay))
+
+
+def learning_rate(cfg: DictConfig, env_steps: int) -> float:
+    """The policy's learning rate after ``env_steps`` of the budget: ``optim.lr`` throughout, or with
+    ``optim.lr_decay=cosine`` decayed along a cosine to ``optim.min_lr_ratio`` of it at
+    ``collector.total_env_steps`` (a function of the env steps, so a resumed run picks up where it was)."""
+    lr = float(cfg.optim.lr)
+    if cfg.optim.get("lr_decay", "constant") == "constant":
+        return lr
+    progress = env_steps / int(cfg.collector.total_env_steps)
+    return lr * training.cosine_decay(progress, float(cfg.optim.get("min_lr_ratio", 0.1)))
 
 
 def make_logger(cfg: DictConfig, run_dir: Path):
