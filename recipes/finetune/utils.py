@@ -61,6 +61,7 @@ ALGOS = ("rwr", "ppo")
 ESTIMATORS = ("gae", "group", "return", "return_to_go")
 #: what GAE's critic reads: the policy's observation (image and proprio state) or the simulator's privileged state
 VALUE_INPUTS = ("observation", "privileged_state")
+#: the policy's learning rate over the env-step budget (``optim.lr_decay``): ``optim.lr`` throughout, or a cosine decay
 LR_DECAYS = ("constant", "cosine")
 
 
