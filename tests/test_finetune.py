@@ -51,8 +51,9 @@ def model(toy_pretrain_run) -> MMaDAModel:
 
 def test_learning_rate_is_constant_or_decays_with_the_env_steps():
     utils = recipe_utils()
-    cfg = OmegaConf.create({"optim": {"lr": 1e-4}, "collector": {"total_env_steps": 1000}})
-    assert utils.learning_rate(cfg, 0) == utils.learning_rate(cfg, 1000) == 1e-4  # no optim.lr_decay: constant
+    cfg = OmegaConf.create({"optim": {"lr": 1e-4, "lr_decay": "constant", "min_lr_ratio": 0.1},
+                            "collector": {"total_env_steps": 1000}})
+    assert utils.learning_rate(cfg, 0) == utils.learning_rate(cfg, 1000) == 1e-4  # constant: optim.lr throughout
     cfg.optim.update(lr_decay="cosine", min_lr_ratio=0.2)
     assert [utils.learning_rate(cfg, s) for s in (0, 500, 1000, 2000)] == pytest.approx([1e-4, 0.6e-4, 0.2e-4, 0.2e-4])
     assert utils.learning_rate(cfg, 250) == pytest.approx(1e-4 * (0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi / 4))))

@@ -115,9 +115,9 @@ def check_config(cfg: DictConfig) -> None:
     if absorbs_success(cfg) and not 0.0 < float(cfg.advantage.gamma) < 1.0:
         raise ValueError(f"advantage.absorbing_success=true values a success at 1 / (1 - gamma): it needs "
                          f"advantage.gamma < 1, got {cfg.advantage.gamma!r}.")
-    if cfg.optim.get("lr_decay", "constant") not in LR_DECAYS:
+    if cfg.optim.lr_decay not in LR_DECAYS:
         raise ValueError(f"optim.lr_decay={cfg.optim.lr_decay!r}; use constant or cosine.")
-    if not 0.0 <= float(cfg.optim.get("min_lr_ratio", 0.1)) <= 1.0:
+    if not 0.0 <= float(cfg.optim.min_lr_ratio) <= 1.0:
         raise ValueError(f"optim.min_lr_ratio must lie in [0, 1], got {cfg.optim.min_lr_ratio!r}.")
     last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
     if last > EVAL_SEED_BASE:
@@ -594,10 +594,10 @@ def learning_rate(cfg: DictConfig, env_steps: int) -> float:
     ``optim.lr_decay=cosine`` decayed along a cosine to ``optim.min_lr_ratio`` of it at
     ``collector.total_env_steps`` (a function of the env steps, so a resumed run picks up where it was)."""
     lr = float(cfg.optim.lr)
-    if cfg.optim.get("lr_decay", "constant") == "constant":
+    if cfg.optim.lr_decay == "constant":
         return lr
     progress = env_steps / int(cfg.collector.total_env_steps)
-    return lr * training.cosine_decay(progress, float(cfg.optim.get("min_lr_ratio", 0.1)))
+    return lr * training.cosine_decay(progress, float(cfg.optim.min_lr_ratio))
 
 
 def make_logger(cfg: DictConfig, run_dir: Path):
