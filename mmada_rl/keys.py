@@ -32,6 +32,7 @@ __all__ = [
     "PRIVILEGED_STATE_KEY",
     "GOAL_IMAGE_KEY",
     "GOAL_IS_CLIPPED_KEY",
+    "ACTION_GRIPPER_ONLY_KEY",
     "EPISODE_KEY",
     "STEP_KEY",
     "SUCCESS_KEY",
@@ -57,6 +58,9 @@ PRIVILEGED_STATE_KEY = ("observation", "privileged_state")
 GOAL_IMAGE_KEY = ("goal", "image")
 #: True where ``t+K`` ran past the episode's last frame and the goal was clipped to it.
 GOAL_IS_CLIPPED_KEY = ("goal", "is_clipped")
+#: True for a chunk window of which only the gripper's entries (the last of each action) are scored, bool ``[*B]``:
+#: a window that starts in the hold after a grasp (``grasp_hold_gripper_only`` of ``make_window_buffer``).
+ACTION_GRIPPER_ONLY_KEY = ("vla_action", "gripper_only")
 #: Trajectory id of every stored transition (what ``SliceSampler(traj_key=...)`` reads).
 EPISODE_KEY = "episode"
 #: Index of the transition inside its episode, starting at 0.

@@ -406,6 +406,20 @@ def test_recipe_rejects_an_unknown_algo(pick_demos, tmp_path):
     assert proc.returncode != 0 and "algo='ppo' is not a baseline" in proc.stderr
 
 
+def test_recipe_refuses_windows_scored_on_the_gripper_alone(pick_demos):
+    """``data.grasp_hold_gripper_only`` is for the MMaDA-VLA losses; the regression losses would score the whole chunk."""
+    from omegaconf import OmegaConf
+    from script_loader import load_script
+
+    from mmada_rl.data import DemoBuffer
+
+    utils = load_script("recipes/baselines/utils.py", "baselines_utils")
+    cfg = OmegaConf.create({"seed": 0, "model": {"chunk_size": 5}, "replay_buffer": {"batch_size": 4, "random_shift": 0},
+                            "data": {"skip_grasp_hold": 0.05, "grasp_hold_gripper_only": True}})
+    with pytest.raises(ValueError, match="data.grasp_hold_gripper_only scores only the gripper tokens of some windows"):
+        utils.make_data(cfg, DemoBuffer.open(pick_demos))
+
+
 # -- evaluation of a baseline ------------------------------------------------------------
 def test_evaluate_runs_a_saved_diffusion_policy_and_an_in_memory_bc_policy(toy_runs, tmp_path):
     result = evaluate(toy_runs["diffusion_policy"] / "checkpoints" / "step_00000004", "PickCube-v1", 1, max_episode_steps=4,

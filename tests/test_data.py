@@ -24,6 +24,7 @@ from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.envs.tasks import UnknownTaskError
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
+    ACTION_GRIPPER_ONLY_KEY,
     ACTION_IS_PAD_KEY,
     ACTION_KEY,
     EPISODE_KEY,
@@ -278,6 +279,22 @@ def test_skip_grasp_hold_draws_no_window_between_the_gripper_close_and_the_lift(
     buf.metadata.control_mode = "pd_joint_delta_pos"
     with pytest.raises(ValueError, match="end-effector delta action's z entry.*'pd_joint_delta_pos'"):
         make_window_buffer(buf, 5, 8, skip_grasp_hold=0.05)
+
+
+def test_grasp_hold_gripper_only_draws_the_hold_windows_flagged(state_demos):
+    buf = DemoBuffer.open(state_demos)
+    held = grasp_holds(buf, lift=0.05)
+    episode = buf.storage[: len(buf)].get(EPISODE_KEY)
+    hold = {(int(episode[a]), t) for a, b in buf.episode_bounds() for t in range(b - a) if held[a + t]}
+    batch = make_window_buffer(buf, 5, 2000, seed=0, skip_grasp_hold=0.05, grasp_hold_gripper_only=True).sample()
+    starts = [(int(e), int(t)) for e, t in zip(batch[EPISODE_KEY], batch[STEP_KEY].reshape(-1))]
+    assert set(starts) == {(int(episode[a]), t) for a, b in buf.episode_bounds() for t in range(b - a)}  # every step
+    assert batch[ACTION_GRIPPER_ONLY_KEY].tolist() == [start in hold for start in starts]  # flagged: those in the hold
+    assert batch[ACTION_CHUNK_KEY][batch[ACTION_GRIPPER_ONLY_KEY], 0, -1].lt(0).all()  # the gripper closed there
+    _check_windows_of(batch[:200], buf, chunk_size=5)
+    assert ACTION_GRIPPER_ONLY_KEY not in make_window_buffer(buf, 5, 12, skip_grasp_hold=0.05).sample().keys(True)
+    with pytest.raises(ValueError, match="grasp_hold_gripper_only .* which skip_grasp_hold finds; set skip_grasp_hold > 0"):
+        make_window_buffer(buf, 5, 8, grasp_hold_gripper_only=True)
 
 
 def test_an_episode_that_only_holds_keeps_its_last_step_as_a_start(tmp_path):

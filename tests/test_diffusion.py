@@ -21,7 +21,7 @@ from mmada_rl.diffusion import (
     path_log_prob,
 )
 from mmada_rl.diffusion.schedules import CosineNoiseSchedule, FullMaskMixture, UniformNoiseSchedule
-from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.keys import ACTION_GRIPPER_ONLY_KEY, ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import gaussian_bin_targets
 from mmada_rl.tokenizers.layout import SEGMENTS, LayoutConfig, SequenceLayout
@@ -505,6 +505,41 @@ def test_loss_without_goal_with_padding_and_condition_masking():
     td2[SEQUENCE_KEY][:, pad_pos] = layout.vocab.range_of("action")[0]
     assert torch.equal(loss_fn(td2)["loss_action"], out["loss_action"])
     assert NOISY_SEQUENCE_KEY in td.keys(True)
+
+
+def test_gripper_only_rows_score_the_last_token_of_each_action_alone():
+    layout = make_layout()
+    loss_fn = MaskedDiffusionLoss(tiny(layout))
+    td = TensorDict({SEQUENCE_KEY: make_batch(layout, batch=4)}, batch_size=[4])
+    loss_fn.corrupt(td, generator=torch.Generator().manual_seed(0))
+    td[CORRUPTED_KEY][:, layout.action_positions] = True  # every action token scored, unless the flag says otherwise
+    plain = loss_fn(td)
+    flagged = torch.tensor([True, False, True, False])
+    td[ACTION_GRIPPER_ONLY_KEY] = flagged
+    out = loss_fn(td)
+    assert plain["num_scored"] - out["num_scored"] == 2 * K * (D_TOK - 1)  # two rows lose their arm tokens
+    action = layout.action_positions.reshape(K, D_TOK)  # each action's tokens in turn, the gripper's last
+    arm, gripper = action[:, :-1].reshape(-1), action[:, -1]
+    start, stop = layout.vocab.range_of("action")
+
+    def relabelled(rows, cols):
+        """``td`` with other clean action ids at ``rows`` x ``cols``."""
+        changed = td.clone()
+        ids = changed[SEQUENCE_KEY]
+        ids[rows[:, None], cols] = (ids[rows[:, None], cols] - start + 1) % (stop - start) + start
+        return changed
+
+    flagged_rows, other_rows = flagged.nonzero().reshape(-1), (~flagged).nonzero().reshape(-1)
+    assert torch.equal(loss_fn(relabelled(flagged_rows, arm))["loss_action"], out["loss_action"])  # not scored
+    assert not torch.equal(loss_fn(relabelled(flagged_rows, gripper))["loss_action"], out["loss_action"])
+    assert not torch.equal(loss_fn(relabelled(other_rows, arm))["loss_action"], out["loss_action"])
+    # one token per action has no gripper token of its own
+    one = SequenceLayout(LayoutConfig(TEXT, IMG, 4, K, 1), layout.vocab)
+    ids = one.assemble(torch.zeros(2, TEXT, dtype=torch.long), torch.zeros(2, IMG, dtype=torch.long),
+                       torch.zeros(2, 4, dtype=torch.long), torch.zeros(2, K, 1, dtype=torch.long))
+    rows = TensorDict({SEQUENCE_KEY: ids, ACTION_GRIPPER_ONLY_KEY: torch.ones(2, dtype=torch.bool)}, batch_size=[2])
+    with pytest.raises(ValueError, match="needs one token per action entry; this layout has 1 per action"):
+        MaskedDiffusionLoss(tiny(one))(rows)
 
 
 def test_loss_skips_samples_outside_torchrl_loss_mask():

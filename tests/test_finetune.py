@@ -19,7 +19,7 @@ from mmada_rl.data.windows import no_start_steps
 from mmada_rl.diffusion.path import path_log_prob, sample_steps, select_steps
 from mmada_rl.envs.maniskill import make_env
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY
-from mmada_rl.keys import (ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY,
+from mmada_rl.keys import (ACTION_GRIPPER_ONLY_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY,
                            VALUE_TARGET_KEY)
 from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
@@ -610,13 +610,16 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
                                                                  "skip_grasp_hold": 0.05}}))
     cfg = OmegaConf.create({"seed": 0, "pretrained": str(checkpoint), "demos": {"ratio": 1.0, "skip_idle_start": None,
                             "skip_pauses": None, "skip_grasp_hold": None}, "replay_buffer": {"batch_size": 8}})
-    assert utils.demo_window_skips(cfg) == {"skip_idle_start": True, "skip_pauses": 0.01, "skip_grasp_hold": 0.05}
+    assert utils.demo_window_skips(cfg) == {"skip_idle_start": True, "skip_pauses": 0.01, "skip_grasp_hold": 0.05,
+                                            "grasp_hold_gripper_only": False}
     overridden = OmegaConf.merge(cfg, {"demos": {"skip_pauses": 0.0}})
-    assert utils.demo_window_skips(overridden) == {"skip_idle_start": True, "skip_pauses": 0.0, "skip_grasp_hold": 0.05}
+    assert utils.demo_window_skips(overridden) == {"skip_idle_start": True, "skip_pauses": 0.0, "skip_grasp_hold": 0.05,
+                                                   "grasp_hold_gripper_only": False}
     (tmp_path / "saved").mkdir()  # a model saved on its own, without a run's config beside it
     (tmp_path / "saved" / "policy").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
     bare = OmegaConf.merge(cfg, {"pretrained": str(tmp_path / "saved" / "policy")})
-    assert utils.demo_window_skips(bare) == {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0}
+    assert utils.demo_window_skips(bare) == {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0,
+                                             "grasp_hold_gripper_only": False}
     assert utils.demo_window_skips(OmegaConf.merge(cfg, {"pretrained": str(toy_pretrain_run)})) == utils.WINDOW_SKIPS
 
     demos = DemoBuffer.open(pick_demos)
@@ -625,6 +628,28 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
     sampler = utils.make_demo_windows(cfg, demos, model).sampler
     torch.testing.assert_close(sampler.no_start, expected)
     assert utils.make_demo_windows(bare, demos, model).sampler.no_start is None
+    # the hold's windows scored on the gripper alone: inherited like the others, and only for ordered bins
+    gripper_only = OmegaConf.merge(cfg, {"demos": {"grasp_hold_gripper_only": True}})
+    assert utils.demo_window_skips(gripper_only)["grasp_hold_gripper_only"] is True
+    with pytest.raises(ValueError, match=r"grasp_hold_gripper_only .* needs ordered bin tokens"):
+        utils.make_demo_windows(gripper_only, demos, model)
+
+
+def test_mixed_batches_flag_the_gripper_only_demo_windows_and_no_online_row(model, pick_demos):
+    """Demonstration windows that start in the grasp hold score their gripper alone; online chunks score everything."""
+    utils = recipe_utils()
+    from mmada_rl.data import DemoBuffer, make_window_buffer
+
+    cfg = OmegaConf.create({"seed": 0, "demos": {"ratio": 0.5}, "replay_buffer": {"batch_size": 400, "capacity": 400}})
+    windows = make_window_buffer(DemoBuffer.open(pick_demos), model.config.chunk_size, 200, seed=0,
+                                 skip_grasp_hold=0.05, grasp_hold_gripper_only=True)
+    online = utils.make_online_buffer(cfg)
+    L, K = model.layout.length, model.config.chunk_size
+    online.extend(TensorDict({SEQUENCE_KEY: torch.zeros(200, L, dtype=torch.long),
+                              ACTION_IS_PAD_KEY: torch.zeros(200, K, dtype=torch.bool), ADVANTAGE_KEY: torch.randn(200)}, [200]))
+    batch = utils.mixed_batch(model, online.sample(), windows)
+    flags, demo = batch[ACTION_GRIPPER_ONLY_KEY], batch[IS_DEMO_KEY]
+    assert not flags[~demo].any() and flags[demo].any() and not flags[demo].all()
 
 
 def test_fine_tuning_keeps_the_pretraining_regularisers(toy_pretrain_run, model, pick_demos, tmp_path):

@@ -127,6 +127,8 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
         (["loss.action_mean_weight=1"], "loss.action_mean_weight=1.0 scores the expected bin of each action token, "
                                         "so it needs ordered bin tokens"),
+        (["data.skip_grasp_hold=0.05", "data.grasp_hold_gripper_only=true"],
+         "data.grasp_hold_gripper_only scores the gripper's token of each action, so it needs ordered bin tokens"),
         (["loss.full_mask_prob=1.5"], "loss.full_mask_prob must lie in [0, 1], got 1.5"),
         (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
         (["model.action_readout=mean"], "action_readout='mean' reads each action token's expected bin, so it needs ordered "
@@ -147,12 +149,14 @@ def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, ov
 
 def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):
     """The VQ-vs-bins ablation: ``tokenizers.action_type=bins`` with the bins' own options (and their Gaussian
-    targets, ``loss.action_label_sigma``, the L1 error of their expected bin, ``loss.action_mean_weight``, and the
-    mean read-out of greedy chunks, ``model.action_readout``)."""
+    targets, ``loss.action_label_sigma``, the L1 error of their expected bin, ``loss.action_mean_weight``, the
+    mean read-out of greedy chunks, ``model.action_readout``, and the grasp hold's windows scored on the gripper
+    alone, ``data.grasp_hold_gripper_only``)."""
     run_dir = tmp_path / "bins"
     proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=2",
                       "eval.episodes=0", "tokenizers.action_type=bins", "tokenizers.action.bins.num_bins=32",
-                      "loss.action_label_sigma=0.75", "loss.action_mean_weight=1.0", "model.action_readout=mean")
+                      "loss.action_label_sigma=0.75", "loss.action_mean_weight=1.0", "model.action_readout=mean",
+                      "data.skip_grasp_hold=0.05", "data.grasp_hold_gripper_only=true")
     assert proc.returncode == 0, proc.stderr[-3000:]
     config = json.loads((run_dir / "tokenizers" / "action" / "config.json").read_text())
     assert config["type"] == "UniformBinActionTokenizer" and config["config"]["num_bins"] == 32

@@ -41,6 +41,11 @@ DART's noise its labels there are small corrections (often downwards), so
 policy that learns "grasped, cube on the table → hold" has nothing to leave it
 by. Episodes that never close the gripper after
 opening it (PushCube-v1's planner keeps it closed) or never lift lose nothing.
+With ``grasp_hold_gripper_only=True`` those windows are drawn after all, flagged
+(:data:`~mmada_rl.keys.ACTION_GRIPPER_ONLY_KEY`) so that a loss scores only their
+gripper entries: the hold's arm labels still teach nothing, but its gripper labels
+are the only ones that say "keep the fingers closed" in the states just after a
+grasp, where a policy trained without them may open the gripper again.
 """
 from __future__ import annotations
 
@@ -52,6 +57,7 @@ from torchrl.envs.transforms import ActionChunkTransform, Compose, Transform
 
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
+    ACTION_GRIPPER_ONLY_KEY,
     ACTION_IS_PAD_KEY,
     EPISODE_KEY,
     GOAL_IMAGE_KEY,
@@ -143,12 +149,16 @@ class ChunkWindowTransform(Transform):
     Args:
         chunk_size: ``K``.
         with_images: also build the goal image (False for state-only buffers).
+        gripper_only_starts: :func:`step_ids` of the steps whose windows score only the gripper; given, every
+            sample gets :data:`~mmada_rl.keys.ACTION_GRIPPER_ONLY_KEY` (True where its window starts at one).
     """
 
-    def __init__(self, chunk_size: int, *, with_images: bool = True):
-        super().__init__(in_keys=[], out_keys=[ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, GOAL_IMAGE_KEY, GOAL_IS_CLIPPED_KEY])
+    def __init__(self, chunk_size: int, *, with_images: bool = True, gripper_only_starts: torch.Tensor | None = None):
+        out_keys = [ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, GOAL_IMAGE_KEY, GOAL_IS_CLIPPED_KEY]
+        super().__init__(in_keys=[], out_keys=out_keys + ([ACTION_GRIPPER_ONLY_KEY] if gripper_only_starts is not None else []))
         self.chunk_size = chunk_size
         self.with_images = with_images
+        self.gripper_only_starts = gripper_only_starts
         self._chunker = ActionChunkTransform(chunk_size, done_key="done")
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -174,7 +184,19 @@ class ChunkWindowTransform(Transform):
             out.set(GOAL_IMAGE_KEY, goal)
         # clipped when fewer than K valid steps: t + K lies past the final frame
         out.set(GOAL_IS_CLIPPED_KEY, valid.sum(-1) < K)
+        if self.gripper_only_starts is not None:
+            start = step_ids(episode[:, 0], step[:, 0])
+            out.set(ACTION_GRIPPER_ONLY_KEY, torch.isin(start, self.gripper_only_starts.to(start.device)))
         return out
+
+
+#: :func:`step_ids` packs an episode id and a step index into one number; no episode is this long.
+STEP_STRIDE = 1 << 32
+
+
+def step_ids(episode: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """One long id per stored step, from its episode id and its index in the episode (same shapes)."""
+    return episode.long() * STEP_STRIDE + step.long()
 
 
 
@@ -227,7 +249,7 @@ def grasp_holds(buffer, lift: float) -> torch.Tensor:
 
 
 #: The window options of :func:`make_window_buffer` and :class:`MultiTaskWindows`, each with its "off" value.
-WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0}
+WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0, "grasp_hold_gripper_only": False}
 
 
 def window_skips(options) -> dict:
@@ -256,7 +278,7 @@ def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float 
 
 def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None,
                        skip_idle_start: bool = False, skip_pauses: float = 0.0,
-                       skip_grasp_hold: float = 0.0) -> ReplayBuffer:
+                       skip_grasp_hold: float = 0.0, grasp_hold_gripper_only: bool = False) -> ReplayBuffer:
     """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
 
     Args:
@@ -272,6 +294,9 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
         skip_grasp_hold: draw no window that starts between an episode's first gripper close and
             its lift, the first of three consecutive actions raising the end effector by more than
             this (:func:`grasp_holds`); 0: off.
+        grasp_hold_gripper_only: draw the windows ``skip_grasp_hold`` finds after all, each flagged
+            (:data:`~mmada_rl.keys.ACTION_GRIPPER_ONLY_KEY`) so that only its gripper entries are scored; every
+            sample then carries the flag. Needs ``skip_grasp_hold > 0``.
 
     Examples:
         >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)  # doctest: +SKIP
@@ -289,11 +314,19 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             f"chunk_size={chunk_size} is longer than every episode in {buffer.path} "
             f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
         )
+    gripper_only = None
+    if grasp_hold_gripper_only:
+        if not skip_grasp_hold > 0:
+            raise ValueError("grasp_hold_gripper_only scores only the gripper of the windows that start in the hold "
+                             "after a grasp, which skip_grasp_hold finds; set skip_grasp_hold > 0 (e.g. 0.05).")
+        stored = buffer.storage[: len(buffer.storage)]
+        hold = grasp_holds(buffer, lift=skip_grasp_hold)
+        gripper_only = step_ids(stored.get(EPISODE_KEY).reshape(-1), stored.get(STEP_KEY).reshape(-1))[hold]
     no_start = no_start_steps(buffer, skip_idle_start=skip_idle_start, skip_pauses=skip_pauses,
-                              skip_grasp_hold=skip_grasp_hold)
+                              skip_grasp_hold=0.0 if grasp_hold_gripper_only else skip_grasp_hold)
     sampler = ChunkWindowSampler(chunk_size, no_start=no_start)
     transform = Compose(
-        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
+        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb", gripper_only_starts=gripper_only),
         InstructionLookup(buffer.metadata.instructions),
     )
     # a plain ReplayBuffer: TensorDictReplayBuffer would write the flat per-transition
@@ -385,7 +418,8 @@ class MultiTaskWindows:
             (proportional to stored transitions, as one merged buffer would be)
             or one non-negative weight per buffer.
         seed: seeds the task draw and every member's sampler.
-        skip_idle_start, skip_pauses, skip_grasp_hold: as for :func:`make_window_buffer`, in every buffer.
+        skip_idle_start, skip_pauses, skip_grasp_hold, grasp_hold_gripper_only: as for :func:`make_window_buffer`,
+            in every buffer.
 
     Examples:
         >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)  # doctest: +SKIP
@@ -394,7 +428,8 @@ class MultiTaskWindows:
     """
 
     def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None,
-                 skip_idle_start: bool = False, skip_pauses: float = 0.0, skip_grasp_hold: float = 0.0):
+                 skip_idle_start: bool = False, skip_pauses: float = 0.0, skip_grasp_hold: float = 0.0,
+                 grasp_hold_gripper_only: bool = False):
         buffers = list(buffers)
         if not buffers:
             raise ValueError("MultiTaskWindows needs at least one buffer.")
@@ -412,7 +447,7 @@ class MultiTaskWindows:
         self.members = [
             make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i,
                                skip_idle_start=skip_idle_start, skip_pauses=skip_pauses,
-                               skip_grasp_hold=skip_grasp_hold)
+                               skip_grasp_hold=skip_grasp_hold, grasp_hold_gripper_only=grasp_hold_gripper_only)
             for i, b in enumerate(buffers)
         ]
         self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()

@@ -17,7 +17,7 @@ from mmada_rl.diffusion.denoiser import MaskedDiffusionDenoiser, make_denoiser_m
 from mmada_rl.diffusion.forward_process import NoiseKernel, check_probability, corrupt, make_kernel
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY, VISUAL_FEATURES_KEY
 from mmada_rl.diffusion.schedules import NoiseSchedule, make_noise_schedule
-from mmada_rl.keys import ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
+from mmada_rl.keys import ACTION_GRIPPER_ONLY_KEY, ACTION_IS_PAD_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY
 from mmada_rl.tokenizers.layout import SEGMENTS
 
 __all__ = ["MaskedDiffusionLoss", "ScoredPositions", "gaussian_bin_targets"]
@@ -119,7 +119,10 @@ class MaskedDiffusionLoss(LossModule):
     ``noise_level`` (mean ρ) and ``num_scored`` (scored positions).
 
     Padded chunk steps (``action_is_pad``, ``[B, K]``) and samples flagged
-    invalid by TorchRL's loss masks (:attr:`loss_mask_key`) are not scored.
+    invalid by TorchRL's loss masks (:attr:`loss_mask_key`) are not scored. Of a
+    sample flagged ``action_gripper_only`` (``[B]``, a window starting in the hold after a
+    grasp) only the last token of each action, the gripper's, is scored among its action
+    tokens (one token per action entry, as ordered-bin tokenizers give).
 
     Examples:
         >>> from mmada_rl.tokenizers.vocabulary import UnifiedVocabulary, VocabularyConfig
@@ -146,6 +149,8 @@ class MaskedDiffusionLoss(LossModule):
                 ``[*B, 3, H, W]`` when the denoiser encodes them itself (read with
                 cross-attention only).
             action_is_pad: bool ``[*B, K]``, chunk steps past the episode end (optional).
+            action_gripper_only: bool ``[*B]``, samples of which only the gripper's action tokens are
+                scored (optional). Defaults to ``ACTION_GRIPPER_ONLY_KEY``.
         """
 
         sequence: NestedKey = SEQUENCE_KEY
@@ -154,6 +159,7 @@ class MaskedDiffusionLoss(LossModule):
         noise_level: NestedKey = NOISE_LEVEL_KEY
         visual: NestedKey = VISUAL_FEATURES_KEY
         action_is_pad: NestedKey = ACTION_IS_PAD_KEY
+        action_gripper_only: NestedKey = ACTION_GRIPPER_ONLY_KEY
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -326,6 +332,15 @@ class MaskedDiffusionLoss(LossModule):
         if is_pad is not None:
             pad = is_pad.reshape(batch, -1).bool().repeat_interleave(layout.config.tokens_per_action, dim=1)
             scored[:, layout.action_positions.to(device)] &= ~pad.repeat_interleave(copies, dim=0)
+        gripper_only = tensordict.get(keys.action_gripper_only, None)
+        if gripper_only is not None:
+            per_action = layout.config.tokens_per_action
+            if per_action < 2:
+                raise ValueError(f"{keys.action_gripper_only!r} scores only the gripper's token of each action, so it "
+                                 f"needs one token per action entry; this layout has {per_action} per action.")
+            arm = torch.arange(layout.action_positions.numel(), device=device) % per_action != per_action - 1
+            rows_only = gripper_only.reshape(batch).bool().to(device).repeat_interleave(copies)  # (B*C,)
+            scored[:, layout.action_positions.to(device)] &= ~(rows_only[:, None] & arm)
 
         rows, cols = scored.nonzero(as_tuple=True)  # (M,), (M,)
         with self.denoiser_network_params.to_module(self.denoiser_network):

@@ -39,6 +39,7 @@ from mmada_rl.envs.maniskill import EnvConfig, task_camera_fov
 from mmada_rl.instructions import instruction_texts
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
+    ACTION_GRIPPER_ONLY_KEY,
     ACTION_IS_PAD_KEY,
     GOAL_IMAGE_KEY,
     IMAGE_KEY,
@@ -420,12 +421,16 @@ class MMaDAModel(nn.Module):
 
     def loss_inputs(self, windows: TensorDictBase) -> TensorDict:
         """What a masked-diffusion loss reads from a batch of chunk windows: the clean
-        sequence ``[B, L]``, the chunk's padding flags ``[B, K]`` and, with
+        sequence ``[B, L]``, the chunk's padding flags ``[B, K]`` (and its gripper-only flags ``[B]``
+        where the windows carry them) and, with
         cross-attention, the visual input (:meth:`visual_input`)."""
         windows = windows.to(self.device)
         ids = self.sequence(windows)
         rows = TensorDict({SEQUENCE_KEY: ids, ACTION_IS_PAD_KEY: windows.get(ACTION_IS_PAD_KEY)},
                           batch_size=[ids.shape[0]], device=ids.device)
+        gripper_only = windows.get(ACTION_GRIPPER_ONLY_KEY, None)
+        if gripper_only is not None:
+            rows.set(ACTION_GRIPPER_ONLY_KEY, gripper_only)
         visual = self.visual_input(windows)
         if visual is not None:
             rows.set(VISUAL_FEATURES_KEY, visual)

@@ -45,8 +45,12 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
 
 def make_data(cfg: DictConfig, buffer: DemoBuffer):
     """Chunk-window sampler over the demonstrations (seeded), with random-shift augmentation of the images."""
+    skips = window_skips(cfg.data)
+    if skips["grasp_hold_gripper_only"]:
+        raise ValueError("data.grasp_hold_gripper_only scores only the gripper tokens of some windows, which the "
+                         "MMaDA-VLA losses do; the baselines' regression losses score every action entry. Leave it off.")
     data = make_window_buffer(buffer, int(cfg.model.chunk_size), int(cfg.replay_buffer.batch_size), seed=int(cfg.seed),
-                              **window_skips(cfg.data))
+                              **skips)
     if int(cfg.replay_buffer.random_shift) and buffer.metadata.obs_mode == "rgb":
         data.append_transform(RandomShift(int(cfg.replay_buffer.random_shift)))
     return data

@@ -26,6 +26,7 @@ from mmada_rl.envs.maniskill import EnvConfig, make_env, privileged_state_dim
 from mmada_rl.evaluation import EVAL_SEED_BASE, resolve_model_dir
 from mmada_rl.envs.maniskill import WORKER_SEED_STRIDE
 from mmada_rl.keys import (
+    ACTION_GRIPPER_ONLY_KEY,
     ACTION_IS_PAD_KEY,
     ACTION_TOKENS_KEY,
     ADVANTAGE_KEY,
@@ -489,7 +490,10 @@ def make_demo_windows(cfg: DictConfig, demos: DemoBuffer, model: MMaDAModel):
     _, n_demo = split_batch(cfg)
     if n_demo == 0:
         return None
-    windows = make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed), **demo_window_skips(cfg))
+    skips = demo_window_skips(cfg)
+    if skips["grasp_hold_gripper_only"]:
+        model.action_tokenizer.require_ordered_bins("grasp_hold_gripper_only scores the gripper's token of each action")
+    windows = make_window_buffer(demos, model.config.chunk_size, n_demo, seed=int(cfg.seed), **skips)
     pad = demo_random_shift(cfg)
     if pad:
         windows.append_transform(RandomShift(pad, image_keys=[IMAGE_KEY, GOAL_IMAGE_KEY]))
@@ -510,6 +514,8 @@ def mixed_batch(model: MMaDAModel, online: TensorDictBase | None, demo_windows) 
         rows = model.loss_inputs(demo_windows.sample())
         n = rows.shape[0]
         parts.append(rows.set(ADVANTAGE_KEY, torch.zeros(n)).set(IS_DEMO_KEY, torch.ones(n, dtype=torch.bool)))
+        if online is not None and ACTION_GRIPPER_ONLY_KEY in rows.keys(True):  # online chunks score every entry
+            parts[0].set(ACTION_GRIPPER_ONLY_KEY, torch.zeros(online.shape[0], dtype=torch.bool))
     return torch.cat(parts)
 
 

@@ -185,6 +185,8 @@ def make_loss(cfg: DictConfig, model: MMaDAModel) -> MaskedDiffusionLoss:
                               ("action_mean_weight", mean_weight, "scores the expected bin of each action token")):
         if value > 0:
             model.action_tokenizer.require_ordered_bins(f"loss.{name}={value} {what}")
+    if window_skips(cfg.data)["grasp_hold_gripper_only"]:
+        model.action_tokenizer.require_ordered_bins("data.grasp_hold_gripper_only scores the gripper's token of each action")
     return MaskedDiffusionLoss(
         model.denoiser, schedule=schedule, kernel=l.kernel, action_weight=float(l.action_weight),
         goal_weight=float(l.goal_weight), condition_mask_prob=float(l.condition_mask_prob),
