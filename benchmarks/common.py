@@ -92,11 +92,14 @@ def maniskill_env(env):
     return env._env.unwrapped
 
 
-def probed_episode(penv, seed: int, max_decisions: int, probe) -> tuple[list, bool]:
+def probed_episode(penv, seed: int, max_decisions: int, probe, executed: list | None = None) -> tuple[list, bool]:
     """One greedy evaluation episode from ``reset(seed=seed)``; ``probe(task)`` reads the simulator
-    (the ManiSkill task) before every decision. Returns the probes and whether the task succeeded."""
+    (the ManiSkill task) before every decision. Returns the probes and whether the task succeeded.
+    ``executed``: a list that receives each decision's executed actions, ``[k, A]`` (the chunk's first k)."""
     import torch
     from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+    from mmada_rl.keys import ACTION_CHUNK_KEY
 
     task = maniskill_env(penv.env)
     td = penv.env.reset(seed=seed)
@@ -104,7 +107,11 @@ def probed_episode(penv, seed: int, max_decisions: int, probe) -> tuple[list, bo
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         for _ in range(max_decisions):
             probes.append(probe(task))
-            td = penv.env.step(penv.policy(td))
+            td = penv.policy(td)
+            if executed is not None:
+                chunk = td.get(ACTION_CHUNK_KEY)
+                executed.append(chunk.reshape(-1, *chunk.shape[-2:])[0, : penv.actor.execute_steps].clone())
+            td = penv.env.step(td)
             success = success or bool(td.get(("next", "success")).any())
             if td.get(("next", "done")).any():
                 break

@@ -18,7 +18,9 @@ policy ``mmada-rl eval`` loads (MMaDA-VLA, BC, Diffusion Policy; RGB or state).
 Each failed episode is sorted into one failure mode (:func:`failure_mode`, the
 first that applies): ``never grasped``; ``dropped`` (the gripper lost the cube
 at least once after the first grasp, wherever the cube was then: a grasp
-that slipped, or fingers that opened on it); ``stalled`` (held, but the cube never came
+that slipped, or fingers that opened on it; ``released`` counts the drops in which
+the policy itself commanded the gripper open while it held the cube, before the
+first loss); ``stalled`` (held, but the cube never came
 :data:`STALL_CM` nearer the goal than it was at the grasp: the arm stays
 still, or nearly, with the cube in its fingers); ``near miss`` (within
 :data:`NEAR_CM` of the goal at the closest); ``short`` (carried toward the goal,
@@ -90,8 +92,26 @@ def failure_mode(episode: dict) -> str | None:
     return "near miss" if episode["closest_cm"] < NEAR_CM else "short"
 
 
+#: The gripper entry of a pd_ee_delta_pose action: > 0 opens, < 0 closes.
+GRIPPER_DIM = -1
+
+
+def released(held: list[bool], executed: list) -> bool:
+    """Whether the policy commanded the gripper open (:data:`GRIPPER_DIM` > 0 in an executed action) at a decision
+    that began with the cube held, before the first decision at which the cube was no longer held."""
+    grasped = False
+    for hold, actions in zip(held, executed):
+        if grasped and not hold:
+            return False  # lost before any release: it slipped
+        grasped = grasped or hold
+        if hold and bool((actions[:, GRIPPER_DIM] > 0).any()):
+            return True
+    return False
+
+
 def rollout(penv, seed: int, max_decisions: int) -> dict:
-    probes, success = probed_episode(penv, seed, max_decisions, probe)
+    executed = []
+    probes, success = probed_episode(penv, seed, max_decisions, probe, executed)
     held = [h for h, _, _ in probes]
     grasped_at = next((i for i, h in enumerate(held) if h), None)
     distance = [float(torch.tensor(o).norm()) for _, o, _ in probes]
@@ -106,6 +126,7 @@ def rollout(penv, seed: int, max_decisions: int) -> dict:
         "max_tilt_deg": round(float(tilt_deg(orientation[:1], orientation).max()), 2),
     }
     episode["failure_mode"] = failure_mode(episode)
+    episode["released"] = episode["failure_mode"] == "dropped" and released(held, executed)
     return episode
 
 
@@ -164,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
                "median_closest_cm": median("closest_cm"), "median_max_above_goal_cm": median("max_above_goal_cm"),
                "median_final_cm": median("final_cm"),
                "median_max_tilt_deg": statistics.median(e["max_tilt_deg"] for e in episodes),
-               "failures": {mode: sum(e["failure_mode"] == mode for e in episodes) for mode in FAILURE_MODES}}
+               "failures": {mode: sum(e["failure_mode"] == mode for e in episodes) for mode in FAILURE_MODES},
+               "dropped_released": sum(bool(e.get("released")) for e in episodes)}
     payload = {"checkpoint": str(args.checkpoint), "task": TASK, "action_readout": args.action_readout,
                "demo_seeds": args.demo_seeds, "summary": summary, "episodes": episodes}
     readout = f" ({args.action_readout} read-out)" if args.action_readout else ""
@@ -188,11 +210,13 @@ def main(argv: list[str] | None = None) -> int:
          "median final cube–goal (cm)", "median max tilt (degrees, all episodes)"],
         [[summary["episodes"], summary["successes"], summary["grasped"], fmt(summary["median_closest_cm"]),
           fmt(summary["median_max_above_goal_cm"]), fmt(summary["median_final_cm"]), fmt(summary["median_max_tilt_deg"])]])
-    modes = markdown_table(list(FAILURE_MODES), [[summary["failures"][m] for m in FAILURE_MODES]])
+    modes = markdown_table([*FAILURE_MODES, "of the drops, released by the policy"],
+                           [[*(summary["failures"][m] for m in FAILURE_MODES), summary["dropped_released"]]])
     markdown = (f"# How far the policy gets on PickCube-v1: `{args.checkpoint}`\n\n"
                 f"{seeds}, greedy decoding{readout}; distances after the first grasp, "
                 f"medians over the episodes that grasped.\n\n{table}\n\n"
-                f"The failures by mode (dropped: the grasp lost after it was made; stalled: held, the cube never "
+                f"The failures by mode (dropped: the grasp lost after it was made, released when the policy opened "
+                f"the gripper on the held cube before it was lost; stalled: held, the cube never "
                 f"{STALL_CM:g} cm nearer the goal than at the grasp; near miss: within {NEAR_CM:g} cm at the "
                 f"closest; short: neither):\n\n{modes}{fit_table}\n")
     write_results(args.name, payload, markdown, args.out)

@@ -371,6 +371,16 @@ def test_pick_progress_sorts_each_failure_into_one_mode():
     assert mode(episode(distance=(20.0, 20.0, 9.0))) == "short"
 
 
+def test_pick_progress_tells_a_released_grasp_from_a_slipped_one():
+    released = load_benchmark("pick_progress").released
+    close, open_ = torch.tensor([[0.0] * 6 + [-1.0]] * 5), torch.tensor([[0.0] * 6 + [-1.0]] * 4 + [[0.0] * 6 + [1.0]])
+    # held at decisions 1 and 2, lost at 3: the chunk executed at 2 opened the gripper on the held cube
+    assert released([False, True, True, False], [open_, close, open_, close])  # an open before the grasp does not count
+    assert not released([False, True, True, False], [open_, close, close, open_])  # lost with the fingers closed
+    assert not released([False, True, False, True], [close, close, close, open_])  # opened only after the first loss
+    assert not released([False, False, False], [open_, open_, open_])  # never held
+
+
 def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pick_demos, tmp_path):
     bench = load_benchmark("pick_progress")
     assert bench.main(["--checkpoint", str(toy_pretrain_run), "--episodes", "2", "--max-episode-steps", "10",
@@ -391,7 +401,9 @@ def test_pick_progress_report_follows_the_cube_to_the_goal(toy_pretrain_run, pic
     assert failures["never grasped"] == 2 - result["summary"]["grasped"]
     assert all(e["failure_mode"] == bench.failure_mode(e) for e in result["episodes"])
     assert "median max height above goal (cm)" in (tmp_path / "pick_progress.md").read_text()
-    assert "| never grasped | dropped | stalled | near miss | short |" in (tmp_path / "pick_progress.md").read_text()
+    assert ("| never grasped | dropped | stalled | near miss | short | of the drops, released by the policy |"
+            in (tmp_path / "pick_progress.md").read_text())
+    assert result["summary"]["dropped_released"] == sum(e["released"] for e in result["episodes"]) <= failures["dropped"]
     assert (tmp_path / "pick_progress.png").stat().st_size > 0
     assert result["action_readout"] is None  # the policy's own
     with pytest.raises(ValueError, match="needs ordered bin tokens"):  # the toy policy's actions are VQ codes
