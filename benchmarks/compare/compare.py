@@ -167,6 +167,11 @@ METHODS = {
                                                    "decayed along a cosine to 1e-5 over the budget (ours)", "rgb+proprio",
                                                    [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
                                                     "optim.lr_decay=cosine", "optim.min_lr_ratio=0.1"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
+                                                    "windows that start in the hold after a grasp drawn and scored on "
+                                                    "the gripper alone (ours)", "rgb+proprio",
+                                                    [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
+                                                     "demos.grasp_hold_gripper_only=true"], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
