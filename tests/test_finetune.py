@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -847,6 +848,53 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     assert "iteration 2, 20 env steps" in proc.stdout
     history = json.loads((resumed / "eval_history.json").read_text())
     assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
+
+
+def _logged(run_dir: Path, name: str) -> list[tuple[str, str]]:
+    """A run's CSV log of one ``train/`` scalar, as its (step, value) rows."""
+    rows = (run_dir / "logs" / "scalars" / "train" / f"{name}.csv").read_text().split()
+    return [tuple(row.split(",")[:2]) for row in rows]
+
+
+def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(
+        rwr_run, toy_pretrain_run, pick_demos, tmp_path):
+    from safetensors.torch import load_file
+
+    def weights(ckpt: Path) -> dict:
+        return load_file(str(ckpt / "model" / "denoiser.safetensors"))
+
+    averaged = tmp_path / "ema"
+    args = [f"pretrained={toy_pretrain_run}", f"demos.dir={pick_demos}", *COMMON, "ema.enabled=true"]
+    proc = run_recipe(*args, f"run_dir={averaged}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in ("chunk_reward", "loss", "grad_norm"):  # the same rollouts and updates as the run without an average
+        assert _logged(averaged, name) == _logged(rwr_run, name)
+    def decay(n: int) -> float:  # Diffusion Policy's warm-up, from the first update on
+        return 0.0 if n <= 1 else 1 - n ** -0.75
+
+    # each iteration logs the mean decay of its two updates
+    expected = [(decay(2 * i - 1) + decay(2 * i)) / 2 for i in (1, 2, 3)]
+    assert [float(v) for _, v in _logged(averaged, "ema_decay")] == pytest.approx(expected)
+    history = json.loads((averaged / "eval_history.json").read_text())
+    assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
+    ckpt = averaged / "checkpoints" / "step_00000003"
+    own = torch.load(ckpt / "trainer.pt", weights_only=False)["extra"]
+    assert own["ema_updates"] == 6
+    saved, plain = weights(ckpt), weights(rwr_run / "checkpoints" / "step_00000003")
+    for key in plain:  # the checkpoint's own weights are the plain run's; its model is their average
+        torch.testing.assert_close(own["train_weights"][key], plain[key], rtol=1e-5, atol=1e-6)
+    moved = [k for k in plain if plain[k].is_floating_point() and not torch.allclose(saved[k], plain[k])]
+    assert moved
+
+    resumed = tmp_path / "resumed"  # from iteration 2: the average and the own weights continue where they were
+    (resumed / "checkpoints").mkdir(parents=True)
+    shutil.copytree(averaged / "checkpoints" / "step_00000002", resumed / "checkpoints" / "step_00000002")
+    proc = run_recipe(*args, f"run_dir={resumed}", "checkpoint.resume=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    again = resumed / "checkpoints" / "step_00000003"
+    own_again = torch.load(again / "trainer.pt", weights_only=False)["extra"]
+    assert own_again["ema_updates"] == 6
+    assert _logged(resumed, "ema_decay")[-1] == _logged(averaged, "ema_decay")[-1]  # updates 5 and 6, not 1 and 2
 
 
 @pytest.mark.parametrize("name, overrides, steps", [

@@ -172,6 +172,12 @@ METHODS = {
                                                     "the gripper alone (ours)", "rgb+proprio",
                                                     [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
                                                      "demos.grasp_hold_gripper_only=true"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_gripper_ema": ("mmada_return_to_go_noise_keep_lr1e4_gripper evaluated and saved "
+                                                        "as the moving average of its weights (ours: the same "
+                                                        "training, WeightEMA's average)", "rgb+proprio",
+                                                        [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
+                                                         "demos.grasp_hold_gripper_only=true", "ema.enabled=true"],
+                                                        True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",

@@ -7,7 +7,7 @@ from mmada_rl.training.checkpoint import (
     resume_training,
     save_checkpoint,
 )
-from mmada_rl.training.ema import WeightEMA, ema_applied, ema_checkpointed, resume_own_weights
+from mmada_rl.training.ema import WeightEMA, ema_applied, ema_checkpointed, make_weight_ema, resume_own_weights
 from mmada_rl.training.optim import cosine_decay, make_optimizer, make_scheduler, optimizer_step
 from mmada_rl.training.run import require_cpu, start_run
 
@@ -22,6 +22,7 @@ __all__ = [
     "make_logger",
     "make_optimizer",
     "make_scheduler",
+    "make_weight_ema",
     "optimizer_step",
     "require_cpu",
     "resume_own_weights",

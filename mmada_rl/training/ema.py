@@ -34,7 +34,7 @@ from typing import Iterator
 
 import torch
 
-__all__ = ["WeightEMA", "ema_checkpointed", "resume_own_weights"]
+__all__ = ["WeightEMA", "ema_applied", "ema_checkpointed", "make_weight_ema", "resume_own_weights"]
 
 
 class WeightEMA:
@@ -109,6 +109,14 @@ class WeightEMA:
             yield self.module
         finally:
             self.module.load_state_dict(own)
+
+
+def make_weight_ema(module: torch.nn.Module, cfg) -> WeightEMA | None:
+    """The recipes' ``ema`` config group (``enabled``, ``power``, ``max_decay``) as a :class:`WeightEMA` of ``module``,
+    or ``None`` when ``enabled`` is false."""
+    if not cfg.enabled:
+        return None
+    return WeightEMA(module, power=float(cfg.power), max_decay=float(cfg.max_decay))
 
 
 def ema_applied(ema: WeightEMA | None) -> AbstractContextManager:

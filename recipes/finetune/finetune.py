@@ -55,7 +55,11 @@ cold critic, never enter the online buffer (which otherwise keeps them, with the
 
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
-against env steps. Checkpoints (policy, value network, optimizers, counters,
+against env steps. With ``ema.enabled=true`` a moving average of the denoiser's weights
+(:class:`~mmada_rl.training.WeightEMA`, updated after every gradient step from the pretrained weights on) is what
+is evaluated and saved as the checkpoints' model, while the policy's own weights act in the collector and keep
+training; keeping the average changes nothing else (evaluation forks the RNG), so the same run without it
+evaluates the own weights. Checkpoints (policy, value network, optimizers, counters,
 RNG) are atomic; the online buffer is saved beside them. If the env raises
 while collecting, the run saves what it has and stops with a clear message.
 """
@@ -72,7 +76,16 @@ from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
 from mmada_rl.evaluation import evaluate
-from mmada_rl.training import optimizer_step, resume_training, save_checkpoint, start_run
+from mmada_rl.training import (
+    ema_applied,
+    ema_checkpointed,
+    make_weight_ema,
+    optimizer_step,
+    resume_own_weights,
+    resume_training,
+    save_checkpoint,
+    start_run,
+)
 from utils import (
     PREFIX,
     absorb_success,
@@ -134,8 +147,8 @@ def update_value(cfg, value_op, value_optim, rows) -> float:
     return sum(losses) / max(1, len(losses))
 
 
-def gradient_step(cfg, model, optimizer, losses) -> dict[str, float]:
-    return optimizer_step(losses, model.denoiser.parameters(), optimizer, grad_clip=cfg.optim.grad_clip)
+def gradient_step(cfg, model, optimizer, losses, ema) -> dict[str, float]:
+    return optimizer_step(losses, model.denoiser.parameters(), optimizer, grad_clip=cfg.optim.grad_clip, ema=ema)
 
 
 @hydra.main(config_path="config", config_name="toy", version_base=None)
@@ -167,8 +180,10 @@ def main(cfg: DictConfig) -> None:
         model.denoiser.load_state_dict(type(model).load(model_dir).denoiser.state_dict())
 
     ckpt = resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer, generators=generators)
+    ema = make_weight_ema(model.denoiser, cfg.ema)  # after resume: a saved average is the loaded model
     if ckpt is not None:
         extra = ckpt.trainer_state["extra"]
+        resume_own_weights(model.denoiser, ema, extra)
         iteration, env_steps, updates, history = ckpt.step, extra["env_steps"], extra["updates"], extra["eval_history"]
         value_op.load_state_dict(extra["value"])
         value_optim.load_state_dict(extra["value_optimizer"])
@@ -187,14 +202,16 @@ def main(cfg: DictConfig) -> None:
             online.dumps(run_dir / BUFFER_DIR)
         extra = {"env_steps": env_steps, "updates": updates, "eval_history": history,
                  "value": value_op.state_dict(), "value_optimizer": value_optim.state_dict()}
-        return save_checkpoint(run_dir, iteration, model=model, optimizer=optimizer, config=config, generators=generators,
-                               extra=extra, keep=int(cfg.checkpoint.keep))
+        with ema_checkpointed(ema) as own:  # the average is the saved model; own: the weights training resumes from
+            return save_checkpoint(run_dir, iteration, model=model, optimizer=optimizer, config=config,
+                                   generators=generators, extra={**extra, **own}, keep=int(cfg.checkpoint.keep))
 
     start = time.perf_counter()
     total = int(cfg.collector.total_env_steps)
     eval_every = int(cfg.eval.interval_env_steps or 0)
     if not history and int(cfg.eval.episodes) > 0:
-        history.append(run_eval(cfg, model, 0, 0, start))
+        with ema_applied(ema):  # no update yet: the average is the pretrained weights
+            history.append(run_eval(cfg, model, 0, 0, start))
         print(f"{PREFIX} pretrained policy: success_once {history[-1]['success_once']:.2f} over {history[-1]['episodes']} episodes")
     updates_desc = (f"batch {n_online} online + {n_demo} demo rows" if cfg.algo == "rwr" else
                     f"{cfg.loss.ppo.epochs} epochs over each iteration's decisions in minibatches of {cfg.replay_buffer.batch_size}"
@@ -265,7 +282,7 @@ def main(cfg: DictConfig) -> None:
                 model.train()
                 for _ in range(int(cfg.optim.updates_per_batch) if len(online) or not n_online else 0):
                     losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
-                    stepped.append(gradient_step(cfg, model, optimizer, losses))
+                    stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
                     updates += 1
             elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped
                 size = max(1, min(int(cfg.replay_buffer.batch_size), rows.shape[0]))
@@ -275,7 +292,7 @@ def main(cfg: DictConfig) -> None:
                         if demo_anchor is not None:  # the demonstrations' denoising loss, scaled by loss.ppo.demo_coef
                             demo = demo_anchor(mixed_batch(model, None, demo_windows))
                             losses.update({"loss_demo_action": demo["loss_action"], "loss_demo_goal": demo["loss_goal"]})
-                        stepped.append(gradient_step(cfg, model, optimizer, losses))
+                        stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
                         updates += 1
             if stepped:  # means over the iteration's gradient steps (PPO's clip fraction and KL grow over its epochs)
                 metrics.update({f"train/{k}": sum(s[k] for s in stepped) / len(stepped) for k in stepped[0]})
@@ -285,7 +302,8 @@ def main(cfg: DictConfig) -> None:
 
             crossed = eval_every and (env_steps // eval_every) > ((env_steps - steps) // eval_every)
             if int(cfg.eval.episodes) > 0 and (crossed or env_steps >= total):
-                history.append(run_eval(cfg, model, env_steps, updates, start))
+                with ema_applied(ema):  # ema.enabled: the moving average is what is evaluated
+                    history.append(run_eval(cfg, model, env_steps, updates, start))
                 metrics["eval/success_once"] = history[-1]["success_once"]
                 (run_dir / "eval_history.json").write_text(json.dumps(history, indent=2))
             for key, value in metrics.items():

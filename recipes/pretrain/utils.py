@@ -17,7 +17,7 @@ from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
-from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler
+from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler, make_weight_ema
 from mmada_rl.training.demos import open_demos
 from mmada_rl.training.validation import fixed_windows
 
@@ -209,8 +209,7 @@ def proprio_drop_index(cfg: DictConfig, model: MMaDAModel) -> list[int] | None:
 
 def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
     """The moving average of the denoiser's weights, evaluated and saved in place of the last ones (``ema.enabled``)."""
-    e = cfg.ema
-    return WeightEMA(model.denoiser, power=float(e.power), max_decay=float(e.max_decay)) if e.enabled else None
+    return make_weight_ema(model.denoiser, cfg.ema)
 
 
 def make_optim(cfg: DictConfig, model: MMaDAModel):
