@@ -28,6 +28,7 @@ from mmada_rl.objectives.advantages import group_relative_advantages
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAModel, make_policy_env
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from mmada_rl.training.checkpoint import load_checkpoint
+from checkpoint_checks import check_average_beside_own_weights
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -858,11 +859,6 @@ def _logged(run_dir: Path, name: str) -> list[tuple[str, str]]:
 
 def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(
         rwr_run, toy_pretrain_run, pick_demos, tmp_path):
-    from safetensors.torch import load_file
-
-    def weights(ckpt: Path) -> dict:
-        return load_file(str(ckpt / "model" / "denoiser.safetensors"))
-
     averaged = tmp_path / "ema"
     args = [f"pretrained={toy_pretrain_run}", f"demos.dir={pick_demos}", *COMMON, "ema.enabled=true"]
     proc = run_recipe(*args, f"run_dir={averaged}")
@@ -877,14 +873,9 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     assert [float(v) for _, v in _logged(averaged, "ema_decay")] == pytest.approx(expected)
     history = json.loads((averaged / "eval_history.json").read_text())
     assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
-    ckpt = averaged / "checkpoints" / "step_00000003"
-    own = torch.load(ckpt / "trainer.pt", weights_only=False)["extra"]
-    assert own["ema_updates"] == 6
-    saved, plain = weights(ckpt), weights(rwr_run / "checkpoints" / "step_00000003")
-    for key in plain:  # the checkpoint's own weights are the plain run's; its model is their average
-        torch.testing.assert_close(own["train_weights"][key], plain[key], rtol=1e-5, atol=1e-6)
-    moved = [k for k in plain if plain[k].is_floating_point() and not torch.allclose(saved[k], plain[k])]
-    assert moved
+    # the checkpoint's own weights are the plain run's; its model is their average
+    check_average_beside_own_weights(averaged / "checkpoints" / "step_00000003", rwr_run / "checkpoints" / "step_00000003",
+                                     updates=6)
 
     resumed = tmp_path / "resumed"  # from iteration 2: the average and the own weights continue where they were
     (resumed / "checkpoints").mkdir(parents=True)

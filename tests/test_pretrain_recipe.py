@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from safetensors.torch import load_file
 
+from checkpoint_checks import check_average_beside_own_weights, weights
 from script_loader import load_script
 from mmada_rl.training.checkpoint import latest_checkpoint
 
@@ -20,10 +20,6 @@ RECIPE = REPO / "recipes" / "pretrain" / "pretrain.py"
 
 def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(RECIPE), *map(str, overrides)], cwd=REPO, capture_output=True, text=True, timeout=timeout)
-
-
-def weights(ckpt: Path) -> dict:
-    return load_file(str(ckpt / "model" / "denoiser.safetensors"))
 
 
 @pytest.fixture(scope="module")
@@ -80,14 +76,9 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     original = json.loads((toy_run / "history.json").read_text())
     for a, b in zip(history, original):  # keeping an average does not change training
         assert a["train/loss"] == pytest.approx(b["train/loss"], rel=1e-5)
-    ckpt = averaged / "checkpoints" / "step_00000006"
-    own = torch.load(ckpt / "trainer.pt", weights_only=False)["extra"]
-    assert own["ema_updates"] == 6
-    saved, plain = weights(ckpt), weights(toy_run / "checkpoints" / "step_00000006")
-    for key in plain:  # the checkpoint's own weights are the plain run's; its model is their average
-        torch.testing.assert_close(own["train_weights"][key], plain[key], rtol=1e-5, atol=1e-6)
-    moved = [k for k in plain if plain[k].is_floating_point() and not torch.allclose(saved[k], plain[k])]
-    assert moved and "token_embedding.weight" in moved
+    # the checkpoint's own weights are the plain run's; its model is their average
+    own, saved = check_average_beside_own_weights(averaged / "checkpoints" / "step_00000006",
+                                                  toy_run / "checkpoints" / "step_00000006", updates=6)
 
     # the seeds report reads either evaluation: RUN the average's, RUN@raw (or RUN@STEP@raw) the own weights'
     seeds = load_script("benchmarks/seeds.py")
@@ -112,7 +103,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     again = resumed / "checkpoints" / "step_00000006"
     own_again = torch.load(again / "trainer.pt", weights_only=False)["extra"]
     assert own_again["ema_updates"] == 6
-    for key in plain:
+    for key in saved:
         torch.testing.assert_close(weights(again)[key], saved[key], rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(own_again["train_weights"][key], own["train_weights"][key], rtol=1e-5, atol=1e-6)
 
