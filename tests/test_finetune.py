@@ -865,6 +865,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     assert proc.returncode == 0, proc.stderr[-3000:]
     for name in ("chunk_reward", "loss", "grad_norm"):  # the same rollouts and updates as the run without an average
         assert _logged(averaged, name) == _logged(rwr_run, name)
+
     def decay(n: int) -> float:  # Diffusion Policy's warm-up, from the first update on
         return 0.0 if n <= 1 else 1 - n ** -0.75
 

@@ -111,10 +111,11 @@ class WeightEMA:
             self.module.load_state_dict(own)
 
 
-def make_weight_ema(module: torch.nn.Module, cfg) -> WeightEMA | None:
+def make_weight_ema(module: torch.nn.Module, cfg, *, enabled: bool | None = None) -> WeightEMA | None:
     """The recipes' ``ema`` config group (``enabled``, ``power``, ``max_decay``) as a :class:`WeightEMA` of ``module``,
-    or ``None`` when ``enabled`` is false."""
-    if not cfg.enabled:
+    or ``None`` when it is off: ``enabled`` when given (a recipe's own default for a null ``cfg.enabled``), else
+    ``cfg.enabled``."""
+    if not (cfg.enabled if enabled is None else enabled):
         return None
     return WeightEMA(module, power=float(cfg.power), max_decay=float(cfg.max_decay))
 

@@ -10,7 +10,7 @@ from mmada_rl.baselines import ChunkPolicy, NormalizationStats, RandomShift
 from mmada_rl.data import DemoBuffer, make_window_buffer, window_skips
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl import training
-from mmada_rl.training import WeightEMA, ema_checkpointed, make_optimizer, make_scheduler, save_checkpoint
+from mmada_rl.training import WeightEMA, ema_checkpointed, make_optimizer, make_scheduler, make_weight_ema, save_checkpoint
 from mmada_rl.training.demos import open_demos
 
 PREFIX = "[imitation]"
@@ -76,7 +76,7 @@ def make_logger(cfg: DictConfig, run_dir: Path):
 def make_ema(cfg: DictConfig, policy: ChunkPolicy) -> WeightEMA | None:
     """The moving average of the policy's weights that is evaluated and saved (``ema.enabled``; null: diffusion_policy only)."""
     enabled = cfg.ema.enabled if cfg.ema.enabled is not None else cfg.algo == "diffusion_policy"
-    return WeightEMA(policy, power=float(cfg.ema.power), max_decay=float(cfg.ema.max_decay)) if enabled else None
+    return make_weight_ema(policy, cfg.ema, enabled=enabled)
 
 
 def resume(cfg: DictConfig, run_dir: Path, policy: ChunkPolicy, optimizer, scheduler, generators: dict) -> tuple[int, dict]:

@@ -29,6 +29,7 @@ from mmada_rl.data import window_generators
 from mmada_rl.training import (
     ema_applied,
     ema_checkpointed,
+    make_weight_ema,
     optimizer_step,
     resume_own_weights,
     resume_training,
@@ -39,7 +40,6 @@ from mmada_rl.training.validation import validation_metrics
 from utils import (
     make_data,
     make_demo_buffers,
-    make_ema,
     make_logger,
     make_loss,
     make_model,
@@ -106,7 +106,7 @@ def main(cfg: DictConfig) -> None:
 
     ckpt = resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer,
                            scheduler=scheduler, generators=generators)
-    ema = make_ema(cfg, model)  # after resume: a saved average is the loaded model
+    ema = make_weight_ema(model.denoiser, cfg.ema)  # after resume: a saved average is the loaded model
     if ckpt is not None:
         start = ckpt.step
         extra = ckpt.trainer_state.get("extra", {})

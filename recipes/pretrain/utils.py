@@ -17,7 +17,7 @@ from mmada_rl.objectives import MaskedDiffusionLoss
 from mmada_rl.policy import MMaDAConfig, MMaDAModel, Tokenizers
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
 from mmada_rl import training
-from mmada_rl.training import WeightEMA, make_optimizer, make_scheduler, make_weight_ema
+from mmada_rl.training import make_optimizer, make_scheduler
 from mmada_rl.training.demos import open_demos
 from mmada_rl.training.validation import fixed_windows
 
@@ -205,11 +205,6 @@ def proprio_drop_index(cfg: DictConfig, model: MMaDAModel) -> list[int] | None:
         raise ValueError(f"loss.proprio_drop_keep_dims={keep} names the state dropout keeps, but it is off "
                          "(loss.proprio_drop_prob=0).")
     return model.proprio_drop_index(keep, name="loss.proprio_drop_keep_dims")
-
-
-def make_ema(cfg: DictConfig, model: MMaDAModel) -> WeightEMA | None:
-    """The moving average of the denoiser's weights, evaluated and saved in place of the last ones (``ema.enabled``)."""
-    return make_weight_ema(model.denoiser, cfg.ema)
 
 
 def make_optim(cfg: DictConfig, model: MMaDAModel):
