@@ -49,6 +49,7 @@ from tqdm.auto import tqdm
 from mmada_rl.baselines import (
     AGENT_CONFIG,
     POLICY_CONFIG,
+    ChunkPolicy,
     ChunkPolicyEnsemble,
     is_policy_dir,
     is_rl_agent_dir,
@@ -190,6 +191,7 @@ class EvalResult:
     action_readout: str | None = None  # MMaDA-VLA: "token" or "mean" (MMaDAConfig.action_readout); None for baselines
     checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
     demo_seeds: str | None = None  # the buffer whose demonstrations' seeds were run (None: evaluation seeds)
+    own_weights: bool = False  # the checkpoints' own weights were evaluated, not their moving average (ema.enabled)
     stages: dict[str, float] = field(default_factory=dict)  # share of episodes reaching each TaskSpec.stages flag
 
     def stage_interval(self, flag: str) -> Interval:
@@ -199,7 +201,7 @@ class EvalResult:
     def to_dict(self) -> dict:
         """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``, and
         ``eval/reached/<flag>`` for each of the task's progress flags."""
-        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds", "stages"}
+        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds", "stages", "own_weights"}
         out = {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
         return {**out, **{f"eval/reached/{flag}": share for flag, share in self.stages.items()}}
 
@@ -220,37 +222,56 @@ class EvalResult:
                 f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'}"
                 f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''}"
                 f"{f' + N(0, {self.action_noise:g}^2) on the arm actions' if self.action_noise else ''}"
-                f"{on_demos} (95% Wilson CI)")
+                f"{on_demos}{', the own weights beside the moving average' if self.own_weights else ''} (95% Wilson CI)")
         lines = [head, "", "| metric | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
         return "\n".join(lines)
 
 
 def load_actor(model: MMaDAModel | MMaDAEnsemble | TensorDictModuleBase | str | Path | Sequence[str | Path],
-               device: str = "cpu") -> TensorDictModuleBase:
+               device: str = "cpu", *, own_weights: bool = False) -> TensorDictModuleBase:
     """The chunk actor of a policy: an :class:`MMaDAActor` for an MMaDA-VLA model or an
     :class:`MMaDAEnsemble`, the baseline itself otherwise (an RL baseline's actor as a one-step
     chunk policy); loaded first when given as a run, checkpoint or model directory. A list of two
     or more such directories is loaded as their ensemble: an :class:`MMaDAEnsemble` of MMaDA-VLA
-    policies, or a :class:`~mmada_rl.baselines.ChunkPolicyEnsemble` of imitation baselines."""
+    policies, or a :class:`~mmada_rl.baselines.ChunkPolicyEnsemble` of imitation baselines.
+
+    ``own_weights``: a run that kept a moving average of its weights (``ema.enabled``) saves the average as its
+    checkpoints' model and the optimizer's own weights beside it; load those instead (every member's; the
+    policy given as run or checkpoint directories)."""
+    if isinstance(model, (list, tuple)) and len(model) == 1:
+        model = model[0]
+    if own_weights and not (isinstance(model, (str, Path)) or isinstance(model, (list, tuple))):
+        raise ValueError("own_weights reads a training checkpoint: give the policy as a run or checkpoint directory.")
     if isinstance(model, (list, tuple)):
-        if len(model) == 1:
-            model = model[0]
-        else:
-            directories = [resolve_model_dir(d) for d in model]
-            baselines = [is_policy_dir(d) for d in directories]
-            if all(baselines):
-                return ChunkPolicyEnsemble.load(directories, device=device)
-            if any(baselines):
-                raise ValueError("an ensemble's members are all MMaDA-VLA policies or all imitation baselines (BC, "
-                                 f"Diffusion Policy); got {', '.join(str(d) for d in directories)}.")
-            model = MMaDAEnsemble.load(directories, device=device)  # load refuses any other kind of directory
-    if not isinstance(model, (MMaDAModel, MMaDAEnsemble, TensorDictModuleBase)):
-        directory = resolve_model_dir(model)
-        if (directory / MODEL_CONFIG).is_file():
-            model = MMaDAModel.load(directory, device=device)
-        else:
-            model = load_rl_actor(directory, device=device) if is_rl_agent_dir(directory) else load_policy(directory, device=device)
+        members = [_load_policy(resolve_model_dir(d), device, own_weights) for d in model]
+        baselines = [isinstance(m, ChunkPolicy) for m in members]
+        if all(baselines):
+            return ChunkPolicyEnsemble(members)
+        if any(baselines) or not all(isinstance(m, MMaDAModel) for m in members):
+            raise ValueError("an ensemble's members are all MMaDA-VLA policies or all imitation baselines (BC, "
+                             f"Diffusion Policy); got {', '.join(str(d) for d in model)}.")
+        model = MMaDAEnsemble(members)
+    elif not isinstance(model, (MMaDAModel, MMaDAEnsemble, TensorDictModuleBase)):
+        model = _load_policy(resolve_model_dir(model), device, own_weights)
     return MMaDAActor(model) if isinstance(model, (MMaDAModel, MMaDAEnsemble)) else model
+
+
+def _load_policy(directory: Path, device: str, own_weights: bool) -> MMaDAModel | TensorDictModuleBase:
+    """The policy saved in ``directory`` (:func:`resolve_model_dir`'s); with ``own_weights``, the optimizer's own
+    weights of the checkpoint holding it (:func:`~mmada_rl.training.load_own_weights`) in place of its average."""
+    from mmada_rl.training import load_own_weights
+    if is_rl_agent_dir(directory):
+        if own_weights:
+            raise ValueError(f"{directory}: an RL baseline keeps no moving average of its weights (own_weights).")
+        return load_rl_actor(directory, device=device)
+    if (directory / MODEL_CONFIG).is_file():
+        policy = MMaDAModel.load(directory, device=device)
+        trained = policy.denoiser  # what the recipes average (make_weight_ema)
+    else:
+        policy = trained = load_policy(directory, device=device)
+    if own_weights:
+        load_own_weights(trained, directory.parent)
+    return policy
 
 
 def _image_size(actor) -> int | None:
@@ -332,6 +353,7 @@ def evaluate(
     goal_grid: bool = False,
     device: str = "cpu",
     progress: bool = True,
+    own_weights: bool = False,
 ) -> EvalResult:
     """Roll the policy out on fixed evaluation seeds (greedy by default) and measure success.
 
@@ -373,6 +395,9 @@ def evaluate(
         goal_grid: save a PNG of the first episode's predicted goals beside the real frames.
         device: torch device the model runs on when loaded here.
         progress: show a ``tqdm`` bar over episodes.
+        own_weights: for a run that kept a moving average of its weights (``ema.enabled``; the average is its
+            checkpoints' model), evaluate the optimizer's own weights saved beside it instead (``model`` given as
+            run or checkpoint directories; :func:`load_actor`).
 
     Returns:
         an :class:`EvalResult`; ``result.to_dict()`` is the flat ``eval/...`` metrics dict.
@@ -383,7 +408,7 @@ def evaluate(
     """
     EnvConfig(task=task)  # an unknown task fails before the model loads
     seeds = episode_seeds(episodes, seed_offset, demo_seeds, task)
-    actor = load_actor(model, device)
+    actor = load_actor(model, device, own_weights=own_weights)
     cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps,
                           stage_flags=True)
     stages = task_spec(task).stages
@@ -461,6 +486,7 @@ def evaluate(
         action_readout=readout,
         checkpoint=_checkpoint_label(model),
         demo_seeds=None if demo_seeds is None else str(demo_seeds),
+        own_weights=own_weights,
         stages={flag: sum(r.stages[flag] for r in results) / n for flag in stages},
     )  # fmt: skip
     if out_dir is not None:
@@ -482,7 +508,8 @@ def _checkpoint_label(model) -> str | None:
 def _write_outputs(out: Path, metrics: EvalResult, videos, goal) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
     payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint,
-               "action_readout": metrics.action_readout, "demo_seeds": metrics.demo_seeds, "seeds": metrics.seeds,
+               "action_readout": metrics.action_readout, "demo_seeds": metrics.demo_seeds, "own_weights": metrics.own_weights,
+               "seeds": metrics.seeds,
                "per_episode": [r._asdict() for r in metrics.per_episode]}
     files = [out / "eval.json", out / "eval.md"]
     files[0].write_text(json.dumps(payload, indent=2))
@@ -583,6 +610,9 @@ def add_parser(sub) -> None:
                    "for an ensemble, the first CHECKPOINT's eval_ensemble).")
     p.add_argument("--video", action="store_true", help="save every episode as MP4 (GIF without imageio-ffmpeg).")
     p.add_argument("--goal-grid", action="store_true", help="save a PNG of predicted goal images beside the real frames.")
+    p.add_argument("--own-weights", action="store_true",
+                   help="for a run that kept a moving average of its weights (ema.enabled), evaluate the optimizer's own "
+                        "weights its checkpoints save beside the average (their model) instead.")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar.")
     p.set_defaults(func=_run_eval)
 
@@ -603,7 +633,7 @@ def _run_eval(args: argparse.Namespace) -> int:
             sample_temperature=args.sample_temperature, action_noise=args.action_noise,
             action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
             out_dir=args.out or default_out, video=args.video, goal_grid=args.goal_grid,
-            device=args.device, progress=not args.no_progress,
+            device=args.device, progress=not args.no_progress, own_weights=args.own_weights,
         )  # fmt: skip
     except (FileNotFoundError, ValueError) as err:
         print(f"mmada-rl eval: error: {err}", file=sys.stderr)

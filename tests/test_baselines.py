@@ -27,7 +27,7 @@ from mmada_rl.baselines import (
     make_loss,
     make_policy,
 )
-from mmada_rl.evaluation import evaluate, resolve_model_dir
+from mmada_rl.evaluation import evaluate, load_actor, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.training import WeightEMA, optimizer_step
 
@@ -359,8 +359,13 @@ def test_recipe_trains_logs_checkpoints_and_evaluates(toy_runs, algo):
         saved = load_file(str(ckpt / "model" / "policy.safetensors"))
         assert extra["ema_updates"] == 4 and [h["train/ema_decay"] for h in history] == [0.0] + [1 - n ** -0.75 for n in (2, 3, 4)]
         assert any(not torch.equal(saved[k], extra["train_weights"][k]) for k in saved)
+        own = load_actor(run_dir, own_weights=True)  # evaluation can load the own weights instead (--own-weights)
+        for key, value in own.state_dict().items():
+            torch.testing.assert_close(value, extra["train_weights"][key], rtol=0, atol=0)
     else:
         assert extra == {} and "train/ema_decay" not in history[0]
+        with pytest.raises(ValueError, match="kept no moving average"):
+            load_actor(run_dir, own_weights=True)
 
 
 def test_recipe_resumes_with_the_same_batches_and_noise(toy_runs, pick_demos, tmp_path):

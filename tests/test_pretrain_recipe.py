@@ -12,6 +12,8 @@ import torch
 
 from checkpoint_checks import check_average_beside_own_weights, weights
 from script_loader import load_script
+from mmada_rl.cli import main as cli_main
+from mmada_rl.evaluation import load_actor
 from mmada_rl.training.checkpoint import latest_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
@@ -93,6 +95,28 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         assert own_rows["reached"][flag]["rate"] == final[f"eval_raw/reached/{flag}"]
     with pytest.raises(ValueError, match=r"eval_raw/success_once.csv is missing or empty\) \(a pretraining run logs it"):
         seeds.main(["--group", "plain", f"{toy_run}@raw", "--out", str(tmp_path)])
+
+    # evaluation loads the average by default, the own weights with own_weights (--own-weights), every member's
+    for policy, expected in ((load_actor(averaged).model, saved), (load_actor(averaged, own_weights=True).model,
+                                                                    own["train_weights"])):
+        for key, value in policy.denoiser.state_dict().items():
+            torch.testing.assert_close(value, expected[key], rtol=0, atol=0)
+    pair = load_actor([averaged, averaged / "checkpoints" / "step_00000003"], own_weights=True).model
+    third = torch.load(averaged / "checkpoints" / "step_00000003" / "trainer.pt", weights_only=False)["extra"]
+    for member, expected in zip(pair.members, (own["train_weights"], third["train_weights"])):
+        for key, value in member.denoiser.state_dict().items():
+            torch.testing.assert_close(value, expected[key], rtol=0, atol=0)
+    out = tmp_path / "eval_own"
+    assert cli_main(["eval", "--checkpoint", str(averaged), "--own-weights", "--task", "PickCube-v1", "--episodes", "1",
+                     "--max-episode-steps", "4", "--no-progress", "--out", str(out)]) == 0
+    saved_eval = json.loads((out / "eval.json").read_text())
+    assert saved_eval["own_weights"] is True and saved_eval["per_episode"][0]["steps"] == 4
+    assert "the own weights beside the moving average" in (out / "eval.md").read_text()
+    with pytest.raises(ValueError, match="kept no moving average of its weights"):  # a run without one
+        load_actor(toy_run, own_weights=True)
+    with pytest.raises(FileNotFoundError, match="is no training checkpoint"):  # a model directory outside a checkpoint
+        load_actor(shutil.copytree(averaged / "checkpoints" / "step_00000006" / "model", tmp_path / "exported" / "model"),
+                   own_weights=True)
 
     resumed = tmp_path / "resumed"  # from step 3: both the average and the own weights continue exactly
     (resumed / "checkpoints").mkdir(parents=True)

@@ -7,7 +7,14 @@ from mmada_rl.training.checkpoint import (
     resume_training,
     save_checkpoint,
 )
-from mmada_rl.training.ema import WeightEMA, ema_applied, ema_checkpointed, make_weight_ema, resume_own_weights
+from mmada_rl.training.ema import (
+    WeightEMA,
+    ema_applied,
+    ema_checkpointed,
+    load_own_weights,
+    make_weight_ema,
+    resume_own_weights,
+)
 from mmada_rl.training.optim import cosine_decay, make_optimizer, make_scheduler, optimizer_step
 from mmada_rl.training.run import require_cpu, start_run
 
@@ -19,6 +26,7 @@ __all__ = [
     "ema_checkpointed",
     "latest_checkpoint",
     "load_checkpoint",
+    "load_own_weights",
     "make_logger",
     "make_optimizer",
     "make_scheduler",

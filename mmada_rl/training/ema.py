@@ -30,11 +30,12 @@ Examples:
 from __future__ import annotations
 
 from contextlib import AbstractContextManager, contextmanager, nullcontext
+from pathlib import Path
 from typing import Iterator
 
 import torch
 
-__all__ = ["WeightEMA", "ema_applied", "ema_checkpointed", "make_weight_ema", "resume_own_weights"]
+__all__ = ["WeightEMA", "ema_applied", "ema_checkpointed", "load_own_weights", "make_weight_ema", "resume_own_weights"]
 
 
 class WeightEMA:
@@ -139,3 +140,24 @@ def resume_own_weights(module: torch.nn.Module, ema: WeightEMA | None, extra: di
         ema.resume_from(extra)
     elif "train_weights" in extra:
         module.load_state_dict(extra["train_weights"])
+
+
+def load_own_weights(module: torch.nn.Module, checkpoint: str | Path) -> None:
+    """Load into ``module`` the weights its optimizer last wrote, which a training checkpoint (the directory holding
+    ``trainer.pt``) of a run that kept a moving average saved beside it: the checkpoint's model is the average.
+
+    Raises:
+        FileNotFoundError: ``checkpoint`` is not a training checkpoint.
+        ValueError: the run kept no average (its model is already the weights training left).
+    """
+    from mmada_rl.training.checkpoint import TRAINER_FILE, load_checkpoint
+
+    checkpoint = Path(checkpoint)
+    if not (checkpoint / TRAINER_FILE).is_file():
+        raise FileNotFoundError(f"{checkpoint} is no training checkpoint ({TRAINER_FILE} missing): a run's own "
+                                "weights beside its moving average are kept in its checkpoints.")
+    extra = load_checkpoint(checkpoint).trainer_state.get("extra") or {}
+    if "train_weights" not in extra:
+        raise ValueError(f"{checkpoint} kept no moving average of its weights (ema.enabled=false): its model is "
+                         "already the weights training left.")
+    module.load_state_dict(extra["train_weights"])
