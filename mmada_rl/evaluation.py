@@ -201,7 +201,8 @@ class EvalResult:
     def to_dict(self) -> dict:
         """Flat metrics: ``{"eval/success_once": ..., "eval/success_once_ci_low": ..., ...}``, and
         ``eval/reached/<flag>`` for each of the task's progress flags."""
-        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds", "stages", "own_weights"}
+        skip = {"task", "seeds", "per_episode", "files", "checkpoint", "action_readout", "demo_seeds", "stages",
+                "own_weights"}
         out = {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
         return {**out, **{f"eval/reached/{flag}": share for flag, share in self.stages.items()}}
 
@@ -240,7 +241,7 @@ def load_actor(model: MMaDAModel | MMaDAEnsemble | TensorDictModuleBase | str | 
     policy given as run or checkpoint directories)."""
     if isinstance(model, (list, tuple)) and len(model) == 1:
         model = model[0]
-    if own_weights and not (isinstance(model, (str, Path)) or isinstance(model, (list, tuple))):
+    if own_weights and not isinstance(model, (str, Path, list, tuple)):
         raise ValueError("own_weights reads a training checkpoint: give the policy as a run or checkpoint directory.")
     if isinstance(model, (list, tuple)):
         members = [_load_policy(resolve_model_dir(d), device, own_weights) for d in model]
@@ -260,6 +261,7 @@ def _load_policy(directory: Path, device: str, own_weights: bool) -> MMaDAModel 
     """The policy saved in ``directory`` (:func:`resolve_model_dir`'s); with ``own_weights``, the optimizer's own
     weights of the checkpoint holding it (:func:`~mmada_rl.training.load_own_weights`) in place of its average."""
     from mmada_rl.training import load_own_weights
+
     if is_rl_agent_dir(directory):
         if own_weights:
             raise ValueError(f"{directory}: an RL baseline keeps no moving average of its weights (own_weights).")
@@ -508,8 +510,8 @@ def _checkpoint_label(model) -> str | None:
 def _write_outputs(out: Path, metrics: EvalResult, videos, goal) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
     payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint,
-               "action_readout": metrics.action_readout, "demo_seeds": metrics.demo_seeds, "own_weights": metrics.own_weights,
-               "seeds": metrics.seeds,
+               "action_readout": metrics.action_readout, "demo_seeds": metrics.demo_seeds,
+               "own_weights": metrics.own_weights, "seeds": metrics.seeds,
                "per_episode": [r._asdict() for r in metrics.per_episode]}
     files = [out / "eval.json", out / "eval.md"]
     files[0].write_text(json.dumps(payload, indent=2))
