@@ -1120,8 +1120,14 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "env.camera_fov=45" in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos))
     assert {f"data.dir={narrow_demos}", "env.camera_fov=45"} <= set(compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500,
                                                                                     str(narrow_demos)))
-    assert not any(a.startswith(("env.camera_fov", "data.dir")) for a in compare.command(
-        "sac_rlpd_state", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos)))
+    sac = compare.command("sac_rlpd_state", "PickCube-v1", 0, 1000, out, "x", 5, 500, str(narrow_demos))
+    assert not any(a.startswith("env.camera_fov") for a in sac)  # the state baselines: their own state demonstrations
+    assert [a for a in sac if a.startswith("data.dir")] == ["data.dir=data/state/PickCube-v1"]
+    for method in ("sac_rlpd_state", "iql_state", "bc_state", "diffusion_policy_state"):
+        cmd = compare.command(method, "PickCube-v1", 2, 1000, out, "x", 5, 500, str(narrow_demos),
+                              state_demos="data/dart/state/{task}-s{seed}")
+        assert [a for a in cmd if a.startswith("data.dir")] == ["data.dir=data/dart/state/PickCube-v1-s2"]
+    assert not any(a.startswith("data.dir") for a in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500))
     assert not any(a.startswith("env.camera_fov") for a in compare.command("ppo_rgb", "PickCube-v1", 0, 1000, out, "x", 5, 500))
     # the ensemble method acts with the policies pretrained with the other --ensemble-seeds, its own seed skipped
     ens = compare.command("mmada_gae_noise_privileged_keep_ensemble", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500,

@@ -91,8 +91,8 @@ _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
 #: the same, replaying 2 of the 10 denoising steps of each path per update
 _PPO_GROUP_2STEPS = [*_PPO_GROUP, "loss.ppo.denoising_steps=2"]
-#: the privileged-state demonstrations (where the online baselines' recipe collects them)
-_STATE_DEMOS = ["env.obs_mode=state", "data.dir=data/state/${env.task}"]
+#: the imitation baselines on the privileged state (their demonstrations: ``run --state-demos``)
+_STATE_OBS = ["env.obs_mode=state"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
 METHODS = {
     "mmada_rwr": ("MMaDA-VLA + reward-weighted diffusion (ours)", "rgb+proprio",
@@ -167,6 +167,11 @@ METHODS = {
                                                    "decayed along a cosine to 1e-5 over the budget (ours)", "rgb+proprio",
                                                    [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
                                                     "optim.lr_decay=cosine", "optim.min_lr_ratio=0.1"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_ema": ("mmada_return_to_go_noise_keep_lr1e4 evaluated and saved as the moving "
+                                                "average of its weights (ours: the same training, WeightEMA's average; "
+                                                "for tasks without a grasp hold)", "rgb+proprio",
+                                                [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
+                                                 "ema.enabled=true"], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",
@@ -214,10 +219,10 @@ METHODS = {
                          ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy"], False),
     # the same imitation baselines with perfect perception: what the demonstrations teach at best
     "bc_state": ("BC (demos only)", "privileged state (reference)",
-                 ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc", *_STATE_DEMOS], False),
+                 ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc", *_STATE_OBS], False),
     "diffusion_policy_state": ("Diffusion Policy (demos only)", "privileged state (reference)",
                                ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy",
-                                *_STATE_DEMOS], False),
+                                *_STATE_OBS], False),
 }
 
 
@@ -243,14 +248,17 @@ def run_dir(runs: Path, task: str, method: str, seed: int) -> Path:
 
 def command(method: str, task: str, seed: int, budget: int, out: Path, pretrained: str, eval_episodes: int,
             eval_every: int, demos: str = "data/{task}", eval_sample_temperature: float | None = None,
-            ensemble_seeds: list[int] = ()) -> list[str]:
-    """The recipe command of one run; ``pretrained`` and ``demos`` are formatted with ``task`` and ``seed``.
+            ensemble_seeds: list[int] = (), state_demos: str = "data/state/{task}") -> list[str]:
+    """The recipe command of one run; ``pretrained``, ``demos`` and ``state_demos`` are formatted with ``task`` and
+    ``seed``.
 
     ``pretrained`` is our fine-tuning methods' starting point. ``demos`` is the RGB demonstration buffer every
     pixel-based method shares: our methods mix it in, the pixel imitation baselines train on it, and every pixel
     baseline (PPO from pixels too, which learns without demonstrations) is given the camera the buffer was
     recorded with, so every method sees the same images (ours take theirs from the pretrained policy, trained on
-    the same buffer). The state baselines keep their privileged-state demonstrations.
+    the same buffer). The baselines on the privileged state (SAC, IQL, BC and Diffusion Policy on the state) learn
+    from ``state_demos``, the same planner's demonstrations recorded as state vectors (the online recipe collects
+    plain planner demonstrations there when the buffer is missing).
     ``eval_sample_temperature`` evaluates our methods' sampled (not greedy) decoding. ``ensemble_seeds``: see
     :func:`ensemble_partners`."""
     _, obs, recipe, online = METHODS[method]
@@ -268,6 +276,8 @@ def command(method: str, task: str, seed: int, budget: int, out: Path, pretraine
         cmd += [f"collector.total_env_steps={budget}", f"eval.interval={eval_every}"]
     elif obs == "rgb+proprio":
         cmd.append(f"data.dir={demos}")
+    if obs != "rgb+proprio":  # every state baseline learns from demonstrations
+        cmd.append(f"data.dir={state_demos.format(task=task, seed=seed)}")
     if not method.startswith("mmada") and obs == "rgb+proprio":  # ours take the camera from the pretrained policy
         camera_fov = demos_camera_fov(ROOT / demos)
         if camera_fov is not None:
@@ -302,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
                     print(f"[compare] {task} {method} s{seed}: done already ({out})")
                     continue
                 cmd = command(method, task, seed, args.budget, out, args.pretrained, args.eval_episodes, args.eval_every,
-                              args.demos, args.eval_sample_temperature, args.ensemble_seeds)
+                              args.demos, args.eval_sample_temperature, args.ensemble_seeds, args.state_demos)
                 print(f"[compare] {task} {method} s{seed}: {shlex.join(cmd[1:])}", flush=True)
                 proc = subprocess.run(cmd, cwd=ROOT)
                 if proc.returncode != 0:
@@ -524,6 +534,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="the RGB demonstration buffer ({task}, {seed} are filled in): our fine-tuning methods mix it "
                         "in, the pixel imitation baselines train on it, every pixel baseline gets its camera; it must match "
                         "the pretrained policy's camera, e.g. data/PushCube-v1-fov60 for a camera_fov=60 policy")
+    p.add_argument("--state-demos", default="data/state/{task}",
+                   help="the privileged-state demonstration buffer of the state baselines ({task}, {seed} are filled "
+                        "in), e.g. data/dart/state/{task} beside --demos data/dart/{task}-fov60 so that every method "
+                        "learns from the same planner's demonstrations (the online recipe collects plain planner "
+                        "demonstrations when it is missing)")
     p.add_argument("--eval-sample-temperature", type=float, default=None,
                    help="evaluate our fine-tuning methods with tokens sampled at this temperature, the stochastic policy "
                         "they train (default: greedy decoding; the baselines always evaluate their own way)")
