@@ -86,6 +86,8 @@ _GAE_NOISE_PRIVILEGED_WARMUP = [*_GAE_NOISE_PRIVILEGED, "value.warmup_env_steps=
 #: no critic: each chunk's discounted return to its episode's end (success absorbing) as its advantage, standardised
 #: over the batch's online rows as a signed weight (what the privileged critic's advantages turned out to track)
 _RETURN_TO_GO_NOISE = [a.replace("estimator=gae", "estimator=return_to_go") for a in _GAE_NOISE_ABSORBING]
+#: the same with the pretraining run's regularisers kept, at the learning rate 1e-4 (3.3x the recipe's 3e-5)
+_RETURN_TO_GO_KEEP_LR1E4 = [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -162,27 +164,24 @@ METHODS = {
                                       _keep_pretraining_loss(_RETURN_TO_GO_NOISE), True),
     "mmada_return_to_go_noise_keep_lr1e4": ("mmada_return_to_go_noise_keep at the learning rate 1e-4 (3.3x the "
                                             "recipe's 3e-5; ours)", "rgb+proprio",
-                                            [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4"], True),
+                                            _RETURN_TO_GO_KEEP_LR1E4, True),
     "mmada_return_to_go_noise_keep_lr1e4_cosine": ("mmada_return_to_go_noise_keep_lr1e4 with the learning rate "
                                                    "decayed along a cosine to 1e-5 over the budget (ours)", "rgb+proprio",
-                                                   [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
-                                                    "optim.lr_decay=cosine", "optim.min_lr_ratio=0.1"], True),
+                                                   [*_RETURN_TO_GO_KEEP_LR1E4, "optim.lr_decay=cosine",
+                                                    "optim.min_lr_ratio=0.1"], True),
     "mmada_return_to_go_noise_keep_lr1e4_ema": ("mmada_return_to_go_noise_keep_lr1e4 evaluated and saved as the moving "
                                                 "average of its weights (ours: the same training, WeightEMA's average; "
                                                 "for tasks without a grasp hold)", "rgb+proprio",
-                                                [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
-                                                 "ema.enabled=true"], True),
+                                                [*_RETURN_TO_GO_KEEP_LR1E4, "ema.enabled=true"], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",
-                                                    [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
-                                                     "demos.grasp_hold_gripper_only=true"], True),
+                                                    [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true"], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper_ema": ("mmada_return_to_go_noise_keep_lr1e4_gripper evaluated and saved "
                                                         "as the moving average of its weights (ours: the same "
                                                         "training, WeightEMA's average)", "rgb+proprio",
-                                                        [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4",
-                                                         "demos.grasp_hold_gripper_only=true", "ema.enabled=true"],
-                                                        True),
+                                                        [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true",
+                                                         "ema.enabled=true"], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
