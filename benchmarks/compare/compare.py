@@ -86,8 +86,10 @@ _GAE_NOISE_PRIVILEGED_WARMUP = [*_GAE_NOISE_PRIVILEGED, "value.warmup_env_steps=
 #: no critic: each chunk's discounted return to its episode's end (success absorbing) as its advantage, standardised
 #: over the batch's online rows as a signed weight (what the privileged critic's advantages turned out to track)
 _RETURN_TO_GO_NOISE = [a.replace("estimator=gae", "estimator=return_to_go") for a in _GAE_NOISE_ABSORBING]
-#: the same with the pretraining run's regularisers kept, at the learning rate 1e-4 (3.3x the recipe's 3e-5)
-_RETURN_TO_GO_KEEP_LR1E4 = [*_keep_pretraining_loss(_RETURN_TO_GO_NOISE), "optim.lr=1e-4"]
+#: the same with the pretraining run's regularisers kept
+_RETURN_TO_GO_KEEP = _keep_pretraining_loss(_RETURN_TO_GO_NOISE)
+#: and at the learning rate 1e-4 (3.3x the recipe's 3e-5)
+_RETURN_TO_GO_KEEP_LR1E4 = [*_RETURN_TO_GO_KEEP, "optim.lr=1e-4"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -161,7 +163,10 @@ METHODS = {
                                       "advantage (no critic), success absorbing, zero-mean signed weights, on the "
                                       "greedy policy's noisy rollouts (ours: dense reward, N(0, 0.05^2) on the arm, "
                                       "goals weighted too; the pretraining run's regularisers kept)", "rgb+proprio",
-                                      _keep_pretraining_loss(_RETURN_TO_GO_NOISE), True),
+                                      _RETURN_TO_GO_KEEP, True),
+    "mmada_return_to_go_noise_keep_ema": ("mmada_return_to_go_noise_keep evaluated and saved as the moving average "
+                                          "of its weights (ours: the recipe's 3e-5, WeightEMA's average)",
+                                          "rgb+proprio", [*_RETURN_TO_GO_KEEP, "ema.enabled=true"], True),
     "mmada_return_to_go_noise_keep_lr1e4": ("mmada_return_to_go_noise_keep at the learning rate 1e-4 (3.3x the "
                                             "recipe's 3e-5; ours)", "rgb+proprio",
                                             _RETURN_TO_GO_KEEP_LR1E4, True),
