@@ -27,6 +27,7 @@ from mmada_rl.baselines import (
     make_loss,
     make_policy,
 )
+from mmada_rl.data import StateDropout
 from mmada_rl.evaluation import evaluate, load_actor, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.training import WeightEMA, optimizer_step
@@ -423,6 +424,51 @@ def test_recipe_refuses_windows_scored_on_the_gripper_alone(pick_demos):
                             "data": {"skip_grasp_hold": 0.05, "grasp_hold_gripper_only": True}})
     with pytest.raises(ValueError, match="data.grasp_hold_gripper_only scores only the gripper tokens of some windows"):
         utils.make_data(cfg, DemoBuffer.open(pick_demos))
+
+
+def test_state_dropout_replaces_whole_windows_states_by_the_mean_except_the_kept_dims():
+    torch.manual_seed(0)
+    state = torch.randn(2000, 5) + 3.0
+    mean = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0])
+    out = StateDropout(0.25, mean, keep_dims=[4])(TensorDict({STATE_KEY: state.clone()}, [2000])).get(STATE_KEY)
+    dropped = (out[:, :4] == mean[:4]).all(-1)  # a window is dropped whole: all four dims take the mean at once
+    assert ((out[:, :4] == mean[:4]).any(-1) == dropped).all()
+    assert abs(dropped.float().mean().item() - 0.25) < 0.04
+    torch.testing.assert_close(out[~dropped], state[~dropped])  # the others are untouched
+    torch.testing.assert_close(out[:, 4], state[:, 4])  # the kept dimension, in every window
+    assert torch.equal(StateDropout(0.0, mean)(TensorDict({STATE_KEY: state.clone()}, [2000])).get(STATE_KEY), state)
+    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
+        StateDropout(1.5, mean)
+    with pytest.raises(ValueError, match=r"keep_dims=\[5\] must name some, not all"):
+        StateDropout(0.3, mean, keep_dims=[5])
+    with pytest.raises(ValueError, match="built for 5-d states, got 3-d"):
+        StateDropout(0.3, mean)(TensorDict({STATE_KEY: torch.zeros(2, 3)}, [2]))
+
+
+def test_recipe_state_dropout_drops_sampled_windows_states_and_refuses_a_state_policy(pick_demos, state_demos):
+    """``replay_buffer.state_drop_prob``: the sampled windows' states take the demonstrations' mean (the goal kept);
+    an ``obs_mode=state`` policy has nothing else to read, so it is refused."""
+    from omegaconf import OmegaConf
+    from script_loader import load_script
+
+    from mmada_rl.data import DemoBuffer
+
+    utils = load_script("recipes/baselines/utils.py", "baselines_utils")
+    buffer = DemoBuffer.open(pick_demos)
+    mean = NormalizationStats.from_buffer(buffer).state_mean
+    cfg = OmegaConf.create({"seed": 0, "model": {"chunk_size": 5}, "data": {},
+                            "replay_buffer": {"batch_size": 64, "random_shift": 0, "state_drop_prob": 0.5,
+                                              "state_drop_keep_dims": [26, 27, 28]}})
+    torch.manual_seed(0)
+    states = utils.make_data(cfg, buffer).sample().get(STATE_KEY)  # (64, 29)
+    dropped = torch.isclose(states[:, :26], mean[:26]).all(-1)
+    assert 0 < int(dropped.sum()) < 64  # some windows dropped, some not
+    assert not torch.isclose(states[dropped, 26:], mean[26:]).all()  # the goal stays readable
+    with pytest.raises(ValueError, match="replay_buffer.state_drop_prob=0.5 drops the state, the only input"):
+        utils.make_data(cfg, DemoBuffer.open(state_demos))
+    bad = OmegaConf.merge(cfg, {"replay_buffer": {"state_drop_keep_dims": list(range(29))}})
+    with pytest.raises(ValueError, match="state_drop_keep_dims: keep_dims=.* must name some, not all"):
+        utils.make_data(bad, buffer)
 
 
 # -- evaluation of a baseline ------------------------------------------------------------

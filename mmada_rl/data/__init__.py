@@ -1,5 +1,5 @@
 """Demonstration and rollout buffers: collection, storage, import and chunk windows."""
-from mmada_rl.data.augment import RandomShift, check_shift, random_shift
+from mmada_rl.data.augment import RandomShift, StateDropout, check_shift, random_shift
 from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.windows import (
@@ -23,6 +23,7 @@ __all__ = [
     "DemoBuffer",
     "MultiTaskWindows",
     "RandomShift",
+    "StateDropout",
     "check_shift",
     "kept_state_dims",
     "make_window_buffer",

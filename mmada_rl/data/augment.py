@@ -1,4 +1,4 @@
-"""Image augmentation of training windows.
+"""Augmentation of training windows.
 
 :class:`RandomShift` is DrQ's random-shift augmentation (Kostrikov et al., 2020):
 pad by ``pad`` pixels with the border, crop back at a random offset, the
@@ -7,6 +7,13 @@ transform: it changes the training windows only, never what a policy sees in
 the env. Given several image keys (the observation and the goal frame K steps
 later), every key of one window is shifted by the same offset, as if the camera
 had moved, so a goal image stays aligned with its observation.
+
+:class:`StateDropout` is the regression baselines' counterpart of the MMaDA-VLA
+loss's state dropout (``loss.proprio_drop_prob``): with probability ``p`` a
+window's proprioceptive state is replaced by the demonstrations' mean state
+(what the encoder's standardiser maps to zero), so those windows' chunks must be
+predicted from the image. A policy that can read the arm's pose tends to
+predict from it and ignore where the cube is seen; this makes it look.
 """
 from __future__ import annotations
 
@@ -17,9 +24,9 @@ import torch.nn.functional as F
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
 
-from mmada_rl.keys import IMAGE_KEY
+from mmada_rl.keys import IMAGE_KEY, STATE_KEY
 
-__all__ = ["RandomShift", "check_shift", "random_shift"]
+__all__ = ["RandomShift", "StateDropout", "check_shift", "random_shift"]
 
 
 def check_shift(pad, name: str = "pad") -> int:
@@ -91,3 +98,50 @@ class RandomShift(Transform):
         for key, image in zip(self.out_keys, shifted):
             tensordict.set(key, image.reshape(shape))
         return tensordict
+
+
+class StateDropout(Transform):
+    """Replay-buffer transform: each window's state replaced by ``mean`` with probability ``p`` (torch's global RNG).
+
+    Args:
+        p: probability with which a window's state is dropped, in ``[0, 1]``.
+        mean: the state written in its place, ``[S]`` (the demonstrations' mean state).
+        keep_dims: state dimensions left as they are in a dropped window (e.g. PickCube-v1's goal position,
+            ``26..28``, which no camera shows).
+        state_key: the state's key, ``[B, S]``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> windows = TensorDict({STATE_KEY: torch.ones(1000, 4)}, batch_size=[1000])
+        >>> out = StateDropout(0.3, mean=torch.zeros(4), keep_dims=[3])(windows)
+        >>> dropped = out[STATE_KEY][:, 0] == 0  # the windows whose state was dropped
+        >>> 0.2 < dropped.float().mean().item() < 0.4
+        True
+        >>> bool((out[STATE_KEY][dropped, :3] == 0).all()), bool((out[STATE_KEY][:, 3] == 1).all())  # dim 3 kept
+        (True, True)
+    """
+
+    def __init__(self, p: float, mean: torch.Tensor, keep_dims: Sequence[int] = (), state_key=STATE_KEY) -> None:
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"state dropout probability must lie in [0, 1], got {p!r}.")
+        mean = torch.as_tensor(mean, dtype=torch.float32)
+        if mean.ndim != 1:
+            raise ValueError(f"mean must be one state vector [S], got shape {tuple(mean.shape)}.")
+        keep = sorted({int(d) for d in keep_dims})
+        if any(not 0 <= d < mean.numel() for d in keep) or len(keep) >= mean.numel():
+            raise ValueError(f"keep_dims={keep} must name some, not all, of the state's dimensions "
+                             f"0..{mean.numel() - 1}.")
+        super().__init__(in_keys=[state_key], out_keys=[state_key])
+        self.p = float(p)
+        self.register_buffer("mean", mean)
+        dropped = torch.ones(mean.numel(), dtype=torch.bool)
+        dropped[keep] = False
+        self.register_buffer("dropped_dims", dropped)  # (S,) True where a dropped window takes the mean
+
+    def _apply_transform(self, state: torch.Tensor) -> torch.Tensor:
+        if state.shape[-1] != self.mean.numel():
+            raise ValueError(f"StateDropout was built for {self.mean.numel()}-d states, got {state.shape[-1]}-d.")
+        drop = torch.rand(state.shape[:-1] + (1,), device=state.device) < self.p  # (B, 1): whole windows
+        replace = drop & self.dropped_dims.to(state.device)  # (B, S)
+        return torch.where(replace, self.mean.to(state), state)

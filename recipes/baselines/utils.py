@@ -7,7 +7,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mmada_rl import baselines
 from mmada_rl.baselines import ChunkPolicy, NormalizationStats, RandomShift
-from mmada_rl.data import DemoBuffer, make_window_buffer, window_skips
+from mmada_rl.data import DemoBuffer, StateDropout, make_window_buffer, window_skips
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl import training
 from mmada_rl.training import WeightEMA, ema_checkpointed, make_optimizer, make_scheduler, make_weight_ema, save_checkpoint
@@ -44,7 +44,8 @@ def make_policy(cfg: DictConfig, buffer: DemoBuffer) -> ChunkPolicy:
 
 
 def make_data(cfg: DictConfig, buffer: DemoBuffer):
-    """Chunk-window sampler over the demonstrations (seeded), with random-shift augmentation of the images."""
+    """Chunk-window sampler over the demonstrations (seeded), with random-shift augmentation of the images and,
+    with ``replay_buffer.state_drop_prob`` > 0, state dropout (:class:`~mmada_rl.data.StateDropout`)."""
     skips = window_skips(cfg.data)
     if skips["grasp_hold_gripper_only"]:
         raise ValueError("data.grasp_hold_gripper_only scores only the gripper tokens of some windows, which the "
@@ -53,6 +54,17 @@ def make_data(cfg: DictConfig, buffer: DemoBuffer):
                               **skips)
     if int(cfg.replay_buffer.random_shift) and buffer.metadata.obs_mode == "rgb":
         data.append_transform(RandomShift(int(cfg.replay_buffer.random_shift)))
+    p = float(cfg.replay_buffer.get("state_drop_prob", 0.0))
+    if p > 0:
+        if buffer.metadata.obs_mode != "rgb":
+            raise ValueError(f"replay_buffer.state_drop_prob={p} drops the state, the only input of an "
+                             f"obs_mode={buffer.metadata.obs_mode!r} policy; it applies to image policies only.")
+        mean = NormalizationStats.from_buffer(buffer).state_mean
+        keep = list(cfg.replay_buffer.get("state_drop_keep_dims", []) or [])
+        try:
+            data.append_transform(StateDropout(p, mean, keep_dims=keep))
+        except ValueError as err:
+            raise ValueError(f"replay_buffer.state_drop_prob / state_drop_keep_dims: {err}") from None
     return data
 
 
