@@ -95,6 +95,10 @@ _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
 #: the same, replaying 2 of the 10 denoising steps of each path per update
 _PPO_GROUP_2STEPS = [*_PPO_GROUP, "loss.ppo.denoising_steps=2"]
+#: the imitation baselines' recipe (6000 steps, as the pretraining of ours)
+_IMITATION = ["recipes/baselines/imitation.py", "--config-name", "maniskill"]
+#: the same four times longer (the learning-rate schedule stretched with it), evaluated halfway and at the end
+_IMITATION_24K = ["optim.total_steps=24000", "eval.interval=12000"]
 #: the imitation baselines on the privileged state (their demonstrations: ``run --state-demos``)
 _STATE_OBS = ["env.obs_mode=state"]
 #: method -> (label, observations, recipe command, whether it uses online interaction)
@@ -218,15 +222,15 @@ METHODS = {
                        ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=sac"], True),
     "iql_state": ("IQL offline -> online", "privileged state (reference)",
                   ["recipes/baselines/online.py", "--config-name", "online_maniskill", "algo=iql"], True),
-    "bc": ("BC (demos only)", "rgb+proprio", ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc"], False),
-    "diffusion_policy": ("Diffusion Policy (demos only)", "rgb+proprio",
-                         ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy"], False),
+    "bc": ("BC (demos only)", "rgb+proprio", [*_IMITATION, "algo=bc"], False),
+    "diffusion_policy": ("Diffusion Policy (demos only)", "rgb+proprio", [*_IMITATION, "algo=diffusion_policy"], False),
+    "bc_24k": ("BC, 24k steps (demos only)", "rgb+proprio", [*_IMITATION, "algo=bc", *_IMITATION_24K], False),
+    "diffusion_policy_24k": ("Diffusion Policy, 24k steps (demos only)", "rgb+proprio",
+                             [*_IMITATION, "algo=diffusion_policy", *_IMITATION_24K], False),
     # the same imitation baselines with perfect perception: what the demonstrations teach at best
-    "bc_state": ("BC (demos only)", "privileged state (reference)",
-                 ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=bc", *_STATE_OBS], False),
+    "bc_state": ("BC (demos only)", "privileged state (reference)", [*_IMITATION, "algo=bc", *_STATE_OBS], False),
     "diffusion_policy_state": ("Diffusion Policy (demos only)", "privileged state (reference)",
-                               ["recipes/baselines/imitation.py", "--config-name", "maniskill", "algo=diffusion_policy",
-                                *_STATE_OBS], False),
+                               [*_IMITATION, "algo=diffusion_policy", *_STATE_OBS], False),
 }
 
 
