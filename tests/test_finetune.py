@@ -1113,6 +1113,8 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")
     assert "data.dir=y" in bc and not any(a.startswith("demos.dir") for a in bc)
+    long = compare.command("diffusion_policy_24k", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")  # 4x the steps
+    assert {"algo=diffusion_policy", "optim.total_steps=24000", "data.dir=y"} <= set(long)
     narrow_demos = tmp_path / "demos_fov45"  # PPO from pixels sees through the camera of the shared demonstrations
     narrow_demos.mkdir()
     BufferMetadata(task="PickCube-v1", control_mode="pd_ee_delta_pose", obs_mode="rgb", image_size=64, action_dim=7,
