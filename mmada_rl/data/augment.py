@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
 
+from mmada_rl.data.windows import kept_state_dims
 from mmada_rl.keys import IMAGE_KEY, STATE_KEY
 
 __all__ = ["RandomShift", "StateDropout", "check_shift", "random_shift"]
@@ -128,15 +129,12 @@ class StateDropout(Transform):
         mean = torch.as_tensor(mean, dtype=torch.float32)
         if mean.ndim != 1:
             raise ValueError(f"mean must be one state vector [S], got shape {tuple(mean.shape)}.")
-        keep = sorted({int(d) for d in keep_dims})
-        if any(not 0 <= d < mean.numel() for d in keep) or len(keep) >= mean.numel():
-            raise ValueError(f"keep_dims={keep} must name some, not all, of the state's dimensions "
-                             f"0..{mean.numel() - 1}.")
+        replaced = kept_state_dims(keep_dims, mean.numel(), "keep_dims")  # the complement of keep_dims, checked
         super().__init__(in_keys=[state_key], out_keys=[state_key])
         self.p = float(p)
         self.register_buffer("mean", mean)
-        dropped = torch.ones(mean.numel(), dtype=torch.bool)
-        dropped[keep] = False
+        dropped = torch.zeros(mean.numel(), dtype=torch.bool)
+        dropped[replaced] = True
         self.register_buffer("dropped_dims", dropped)  # (S,) True where a dropped window takes the mean
 
     def _apply_transform(self, state: torch.Tensor) -> torch.Tensor:
