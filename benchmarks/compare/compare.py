@@ -191,6 +191,13 @@ METHODS = {
                                                         "training, WeightEMA's average)", "rgb+proprio",
                                                         [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true",
                                                          "ema.enabled=true"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_quiet": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema "
+                                                              "exploring with half the noise (ours: N(0, 0.025^2) "
+                                                              "on the arm)", "rgb+proprio",
+                                                              [*(a.replace("action_noise=0.05", "action_noise=0.025")
+                                                                 for a in _RETURN_TO_GO_KEEP_LR1E4),
+                                                               "demos.grasp_hold_gripper_only=true", "ema.enabled=true"],
+                                                              True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
