@@ -90,6 +90,10 @@ _RETURN_TO_GO_NOISE = [a.replace("estimator=gae", "estimator=return_to_go") for 
 _RETURN_TO_GO_KEEP = _keep_pretraining_loss(_RETURN_TO_GO_NOISE)
 #: and at the learning rate 1e-4 (3.3x the recipe's 3e-5)
 _RETURN_TO_GO_KEEP_LR1E4 = [*_RETURN_TO_GO_KEEP, "optim.lr=1e-4"]
+#: and the demonstration windows in the hold after a grasp scored on the gripper alone
+_RETURN_TO_GO_KEEP_LR1E4_GRIPPER = [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true"]
+#: and evaluated and saved as the moving average of the weights
+_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA = [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER, "ema.enabled=true"]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -185,19 +189,16 @@ METHODS = {
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",
-                                                    [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true"], True),
+                                                    _RETURN_TO_GO_KEEP_LR1E4_GRIPPER, True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper_ema": ("mmada_return_to_go_noise_keep_lr1e4_gripper evaluated and saved "
                                                         "as the moving average of its weights (ours: the same "
                                                         "training, WeightEMA's average)", "rgb+proprio",
-                                                        [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true",
-                                                         "ema.enabled=true"], True),
+                                                        _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA, True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_quiet": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema "
                                                               "exploring with half the noise (ours: N(0, 0.025^2) "
                                                               "on the arm)", "rgb+proprio",
-                                                              [*(a.replace("action_noise=0.05", "action_noise=0.025")
-                                                                 for a in _RETURN_TO_GO_KEEP_LR1E4),
-                                                               "demos.grasp_hold_gripper_only=true", "ema.enabled=true"],
-                                                              True),
+                                                              [a.replace("action_noise=0.05", "action_noise=0.025")
+                                                               for a in _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
