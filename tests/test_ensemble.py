@@ -163,3 +163,38 @@ def test_mmada_rl_eval_runs_several_baselines_as_one_ensemble(observations, tmp_
     mmada = tiny_members(observations, count=1)[0].save(tmp_path / "mmada" / "model")
     assert main(["eval", "--checkpoint", str(dirs[0]), str(mmada), "--task", "PickCube-v1"]) == 2
     assert "all MMaDA-VLA policies or all imitation baselines" in capsys.readouterr().err
+
+
+def test_a_view_ensemble_decodes_each_shifted_view_and_averages_them(observations):
+    views = load_script("benchmarks/view_ensemble.py")
+    model = tiny_members(observations, count=1, action_readout="mean")[0]
+    batch = observations[:3]
+    alone = MMaDAActor(model)(batch.clone())[ACTION_CHUNK_KEY]
+    same = MMaDAActor(views.view_ensemble([model, model], [(0, 0), (0, 0)]))(batch.clone())[ACTION_CHUNK_KEY]
+    torch.testing.assert_close(same, alone)  # two unshifted views: the policy's own chunk
+    # a view shifted 2 px down: the image padded by repeating its edge rows, cropped 2 rows higher
+    image = batch[IMAGE_KEY]
+    down = torch.cat([image[..., :1, :].expand(*image.shape[:-2], 2, image.shape[-1]), image[..., :-2, :]], dim=-2)
+    shifted_batch = batch.clone()
+    shifted_batch.set(IMAGE_KEY, down)
+    shifted = MMaDAActor(model)(shifted_batch)[ACTION_CHUNK_KEY]
+    assert not torch.equal(shifted, alone)  # the policy reads the image: the view changes its chunk
+    both = MMaDAActor(views.view_ensemble([model, model], [(0, 0), (-2, 0)]))(batch.clone())[ACTION_CHUNK_KEY]
+    torch.testing.assert_close(both[..., :GRIPPER], (alone[..., :GRIPPER] + shifted[..., :GRIPPER]) / 2)
+
+
+def test_the_state_dropped_view_masks_what_state_dropout_masked_and_leaves_the_policy_alone(observations):
+    views = load_script("benchmarks/view_ensemble.py")
+    model = tiny_members(observations, count=1)[0]
+    batch = observations[:2]
+    prompt = model.prompt(batch)
+    proprio = model.layout.positions("proprio")
+    keep = [0, 1]  # the first two state dimensions stay readable
+    dropped = views.state_dropped(model, keep).prompt(batch)
+    mask = model.layout.vocab.mask_id
+    masked = (dropped != prompt).any(0)
+    assert masked.nonzero().flatten().tolist() == proprio[2:].tolist()  # one token per state dimension here
+    assert (dropped[:, proprio[2:]] == mask).all()
+    torch.testing.assert_close(model.prompt(batch), prompt)  # the policy's own prompt is untouched
+    every = views.state_dropped(model, []).prompt(batch)
+    assert (every[:, proprio] == mask).all()
