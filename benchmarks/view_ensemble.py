@@ -127,11 +127,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--episodes and --shift must be >= 1.")
 
     from mmada_rl.evaluation import evaluate, resolve_model_dir, wilson_interval
-    from mmada_rl.policy.model import MMaDAModel
+    from mmada_rl.policy.model import MODEL_CONFIG, MMaDAModel
 
+    try:
+        model_dirs = [resolve_model_dir(checkpoint) for checkpoint in args.checkpoint]
+    except FileNotFoundError as err:
+        parser.error(str(err))
+    for checkpoint, model_dir in zip(args.checkpoint, model_dirs):
+        if not (model_dir / MODEL_CONFIG).is_file():
+            parser.error(f"--checkpoint {checkpoint}: not an MMaDA-VLA policy (a baseline has no views to average here).")
     rows, pooled = [], {arm: [0, 0] for arm in args.arms}
-    for checkpoint in args.checkpoint:
-        model_dir = resolve_model_dir(checkpoint)
+    for checkpoint, model_dir in zip(args.checkpoint, model_dirs):
         model = MMaDAModel.load(model_dir)
         keep = drop_keep_dims(model_dir) if "state" in args.arms else []
         per_arm = {}
