@@ -7,7 +7,7 @@ more often as one ensemble (``mmada-rl eval --checkpoint A B C``: the members' g
 averaged) than any of them alone: they fail on different episodes. This asks whether one
 policy gets part of that from views of the observation it was trained to be indifferent
 to, decoded separately and averaged the same way (the arm's actions by their mean, the
-gripper by majority; :func:`mmada_rl.policy.ensemble.average_chunks`):
+gripper by majority; :meth:`mmada_rl.policy.MMaDAEnsemble.combine`):
 
 * ``shifts``: the image as observed and shifted by ``--shift`` pixels up, down, left and
   right (five views; the edge pixels repeated, as the training's random shift pads them);
@@ -63,7 +63,7 @@ def view_ensemble(members, shifts):
     """The :class:`~mmada_rl.policy.MMaDAEnsemble` whose member ``i`` decodes the observation with its image
     shifted by ``shifts[i] = (dy, dx)`` pixels (edges repeated); ``members`` are one policy or its copies."""
     from mmada_rl.keys import IMAGE_KEY
-    from mmada_rl.policy.ensemble import MMaDAEnsemble, average_chunks
+    from mmada_rl.policy.ensemble import MMaDAEnsemble
 
     pad = max(1, *(abs(v) for shift in shifts for v in shift))
 
@@ -79,10 +79,7 @@ def view_ensemble(members, shifts):
                 view = td.clone(False)
                 view.set(IMAGE_KEY, padded[..., pad + dy:pad + dy + H, pad + dx:pad + dx + W].reshape(image.shape))
                 outputs.append(member.act(view, greedy=True, decode_goal=decode_goal and i == 0))
-            chunk = average_chunks(torch.stack([o.chunk for o in outputs]), self.action_tokenizer.config.gripper_dims)
-            first = outputs[0]
-            return first._replace(chunk=chunk, action_tokens=self.action_tokenizer.encode(chunk).to(first.action_tokens),
-                                  log_prob=torch.full_like(first.log_prob, float("nan")))
+            return self.combine(outputs)
 
     return ViewEnsemble(members)
 
@@ -136,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     for checkpoint, model_dir in zip(args.checkpoint, model_dirs):
         if not (model_dir / MODEL_CONFIG).is_file():
             parser.error(f"--checkpoint {checkpoint}: not an MMaDA-VLA policy (a baseline has no views to average here).")
-    rows, pooled = [], {arm: [0, 0] for arm in args.arms}
+    rows = []
     for checkpoint, model_dir in zip(args.checkpoint, model_dirs):
         model = MMaDAModel.load(model_dir)
         keep = drop_keep_dims(model_dir) if "state" in args.arms else []
@@ -145,28 +142,27 @@ def main(argv: list[str] | None = None) -> int:
             result = evaluate(arm_policy(model, arm, args.shift, keep), args.task, args.episodes,
                               seed_offset=args.seed_offset, progress=True)
             per_arm[arm] = [bool(r.success_once) for r in result.per_episode]
-            pooled[arm][0] += sum(per_arm[arm])
-            pooled[arm][1] += len(per_arm[arm])
             print(f"{checkpoint} {arm}: {sum(per_arm[arm])}/{len(per_arm[arm])}", flush=True)
         rows.append({"checkpoint": str(checkpoint), "model": str(model_dir), "success": per_arm})
 
-    def versus(row, arm):  # episodes the arm won and lost against the policy alone
+    def cell(row, arm):  # successes, and the episodes the arm won and lost against the policy alone
         mine, alone = row["success"][arm], row["success"].get("policy")
-        if alone is None:
-            return None
-        return sum(m and not a for m, a in zip(mine, alone)), sum(a and not m for m, a in zip(mine, alone))
+        text = f"{sum(mine)}/{len(mine)}"
+        if arm == "policy" or alone is None:
+            return text
+        won, lost = sum(m and not a for m, a in zip(mine, alone)), sum(a and not m for m, a in zip(mine, alone))
+        return f"{text} (+{won}, -{lost})"
 
     summary = {}
-    for arm, (wins, n) in pooled.items():
+    for arm in args.arms:
+        wins, n = sum(sum(row["success"][arm]) for row in rows), sum(len(row["success"][arm]) for row in rows)
         ci = wilson_interval(wins, n)
         summary[arm] = {"successes": wins, "episodes": n, "success_once": wins / n, "ci_low": ci.low, "ci_high": ci.high}
     payload = {"task": args.task, "episodes": args.episodes, "seed_offset": args.seed_offset, "shift": args.shift,
                "arms": args.arms, "summary": summary, "checkpoints": rows}
     table = markdown_table(
         ["checkpoint", *args.arms],
-        [[f"`{row['checkpoint']}`", *(f"{sum(row['success'][a])}/{len(row['success'][a])}"
-                                     + ("" if a == "policy" or versus(row, a) is None else " (+{}, -{})".format(*versus(row, a)))
-                                     for a in args.arms)] for row in rows]
+        [[f"`{row['checkpoint']}`", *(cell(row, a) for a in args.arms)] for row in rows]
         + [["pooled [95% CI]", *(f"{s['successes']}/{s['episodes']} = {s['success_once']:.2f} "
                                  f"[{s['ci_low']:.2f}, {s['ci_high']:.2f}]" for s in summary.values())]])
     markdown = (f"# One policy averaged over views of its observation: {args.task}\n\n"

@@ -149,7 +149,12 @@ class MMaDAEnsemble(nn.Module):
         if not is_greedy(greedy):
             raise ValueError("an MMaDAEnsemble decodes greedily only: its averaged chunk is no member's sample "
                              "(evaluate its members one by one with sample_temperature).")
-        outputs = [m.act(td, greedy=True, decode_goal=decode_goal and i == 0) for i, m in enumerate(self.members)]
+        return self.combine([m.act(td, greedy=True, decode_goal=decode_goal and i == 0) for i, m in enumerate(self.members)])
+
+    def combine(self, outputs: Sequence[PolicyOutput]) -> PolicyOutput:
+        """The members' outputs as one (what :meth:`act` returns): their chunks averaged, grippers by majority
+        (:func:`average_chunks`), ``action_tokens`` the averaged chunk's encoding, ``log_prob`` NaN, the rest the
+        first output's."""
         chunk = average_chunks(torch.stack([out.chunk for out in outputs]), self.action_tokenizer.config.gripper_dims)
         first = outputs[0]
         tokens = self.action_tokenizer.encode(chunk).to(first.action_tokens)
