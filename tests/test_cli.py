@@ -5,7 +5,7 @@ import pytest
 
 from mmada_rl.cli import build_parser, main
 
-SUBCOMMANDS = ("doctor", "collect", "info", "import-h5", "fit-tokenizers", "quickstart", "eval")
+SUBCOMMANDS = ("doctor", "collect", "merge", "info", "import-h5", "fit-tokenizers", "quickstart", "eval")
 
 
 def test_top_level_help_lists_every_subcommand(capsys):

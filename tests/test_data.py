@@ -494,3 +494,102 @@ def test_action_noise_executes_noisy_actions_and_records_the_exact_ones(tmp_path
     assert res.new_episodes == 1 and res.buffer.metadata.action_noise == 0.05
     with pytest.raises(BufferMismatchError, match="action_noise=0.05"):
         collect(tmp_path / "dart", EnvConfig(task="PickCube-v1", obs_mode="state"), episodes=2, progress=False)
+
+
+@pytest.fixture(scope="module")
+def policy_rollouts(toy_pretrain_run, tmp_path_factory) -> Path:
+    """Two 12-step episodes of the toy pretrained policy, recorded by ``--policy checkpoint``."""
+    out = tmp_path_factory.mktemp("rollouts") / "PickCube-v1"
+    res = collect(out, EnvConfig(task="PickCube-v1", max_episode_steps=12), episodes=2, policy="checkpoint",
+                  checkpoint=[toy_pretrain_run], seed=70, progress=False)
+    assert res.new_episodes == 2 and res.attempts == 2  # failures are kept by default
+    return out
+
+
+def test_checkpoint_rollouts_record_every_executed_action_of_the_greedy_chunks(policy_rollouts, toy_pretrain_run,
+                                                                               pick_demos):
+    """A trained policy's episodes are stored in the demonstrations' layout, with the policy's own camera and
+    provenance; each step is one executed action of its chunks: the first chunk is the greedy chunk the policy
+    decodes from the reset observation, and the actions replayed open loop from the episode's seed give its
+    stored observations back, step after step."""
+    from mmada_rl.envs.maniskill import make_env
+    from mmada_rl.evaluation import eval_env_config, load_actor
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    buf = DemoBuffer.open(policy_rollouts)
+    meta = buf.metadata
+    assert meta.source == "checkpoint" and meta.checkpoint == [str(toy_pretrain_run)] and meta.seeds == [70, 71]
+    planner = DemoBuffer.open(pick_demos)
+    assert (meta.camera_fov, meta.image_size) == (planner.metadata.camera_fov, planner.metadata.image_size)
+    ep, demo = next(buf.episodes()), next(planner.episodes())
+    assert set(ep.keys(True, True)) == set(demo.keys(True, True))
+    assert ep.shape == (12,) and ep["next", "truncated"][-1].item() and not ep["next", "done"][:-1].any()
+    assert ep[STEP_KEY].flatten().tolist() == list(range(12))
+    torch.testing.assert_close(ep["next", "observation", "state"][:-1], ep["observation", "state"][1:])
+
+    actor = load_actor(toy_pretrain_run)
+    cfg = eval_env_config(actor, "PickCube-v1", max_episode_steps=12)
+    env = make_env(cfg)
+    try:
+        td = env.reset(seed=70)
+        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+            chunk = actor(td.clone())[ACTION_CHUNK_KEY]
+        torch.testing.assert_close(ep[ACTION_KEY][: actor.chunk_size], chunk)
+        for t in range(ep.shape[0]):
+            image_gap = (td["observation", "image"].float() - ep["observation", "image"][t].float()).abs().mean()
+            assert image_gap < 0.5, (t, image_gap)
+            torch.testing.assert_close(td["observation", "state"], ep["observation", "state"][t], atol=1e-3, rtol=0)
+            td = env.step(td.set("action", ep[ACTION_KEY][t]))["next"]
+    finally:
+        env.close()
+    assert "policy        " + str(toy_pretrain_run) in buf.summary()
+
+
+def test_checkpoint_source_refuses_another_camera_or_a_missing_checkpoint(toy_pretrain_run, tmp_path, capsys):
+    from mmada_rl.cli import main
+
+    with pytest.raises(ValueError, match="trained with image_size=64 but 32 was asked for"):
+        collect(tmp_path / "a", EnvConfig(task="PickCube-v1", image_size=32), episodes=1, policy="checkpoint",
+                checkpoint=[toy_pretrain_run], progress=False)
+    with pytest.raises(ValueError, match="trained with camera_fov=None but 45.0 was asked for"):
+        collect(tmp_path / "b", EnvConfig(task="PickCube-v1", camera_fov=45), episodes=1, policy="checkpoint",
+                checkpoint=[toy_pretrain_run], progress=False)
+    assert main(["collect", "--task", "PickCube-v1", "--episodes", "1", "--out", str(tmp_path / "c"),
+                 "--policy", "checkpoint"]) == 2
+    assert "--checkpoint PATH" in capsys.readouterr().err
+    assert main(["collect", "--task", "PickCube-v1", "--episodes", "1", "--out", str(tmp_path / "d"),
+                 "--policy", "checkpoint", "--checkpoint", str(tmp_path / "nowhere")]) == 2
+    assert "mmada-rl collect: error:" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "d").exists()
+
+
+def test_merged_buffer_holds_both_parts_episodes_and_their_provenance(pick_demos, policy_rollouts, push_demos,
+                                                                      tmp_path, capsys):
+    """Planner demonstrations and a policy's rollouts of one task make one buffer that chunk windows are drawn
+    from; buffers of another task are refused, naming both."""
+    from mmada_rl.cli import main
+    from mmada_rl.data import merge_buffers
+
+    assert main(["merge", str(pick_demos), str(policy_rollouts), "--out", str(tmp_path / "both")]) == 0
+    assert "part          2 episodes of" in capsys.readouterr().out
+    merged, parts = DemoBuffer.open(tmp_path / "both"), [DemoBuffer.open(pick_demos), DemoBuffer.open(policy_rollouts)]
+    meta = merged.metadata
+    assert meta.source == "planner+checkpoint" and meta.num_episodes == 4
+    assert meta.seeds == parts[0].metadata.seeds + parts[1].metadata.seeds
+    assert [p["source"] for p in meta.parts] == ["planner", "checkpoint"]
+    assert meta.parts[1]["checkpoint"] == parts[1].metadata.checkpoint
+    for got, want in zip(merged.episodes(), [e for p in parts for e in p.episodes()]):
+        assert torch.equal(got[ACTION_KEY], want[ACTION_KEY])
+        assert torch.equal(got["observation", "image"], want["observation", "image"])
+    assert merged.episodes().__next__()[INSTRUCTION_KEY][0] == parts[0].metadata.instructions[0]
+    batch = make_window_buffer(merged, chunk_size=5, batch_size=8, seed=0).sample()
+    assert batch[ACTION_CHUNK_KEY].shape == (8, 5, 7)
+
+    with pytest.raises(BufferMismatchError, match="task='PushCube-v1' but .* has 'PickCube-v1'"):
+        merge_buffers(tmp_path / "mixed", [pick_demos, push_demos])
+    with pytest.raises(FileExistsError):
+        merge_buffers(tmp_path / "both", [pick_demos, policy_rollouts])
+    with pytest.raises(ValueError, match="given twice"):
+        merge_buffers(tmp_path / "twice", [pick_demos, pick_demos])
+    assert main(["merge", str(pick_demos), "--out", str(tmp_path / "one")]) == 2
+    assert "two or more buffers" in capsys.readouterr().err

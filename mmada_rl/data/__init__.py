@@ -1,6 +1,6 @@
 """Demonstration and rollout buffers: collection, storage, import and chunk windows."""
 from mmada_rl.data.augment import RandomShift, StateDropout, check_shift, random_shift
-from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
+from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer, merge_buffers
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.windows import (
     WINDOW_SKIPS,
@@ -27,6 +27,7 @@ __all__ = [
     "check_shift",
     "kept_state_dims",
     "make_window_buffer",
+    "merge_buffers",
     "pad_state",
     "random_shift",
     "window_generators",

@@ -274,10 +274,64 @@ class DemoBuffer:
         if lengths:
             lines.append(f"episode len   mean {np.mean(lengths):.1f}  min {min(lengths)}  max {max(lengths)}")
         if m.attempts:
-            lines.append(f"source        {m.source}: {m.successes}/{m.attempts} episodes kept ({100 * m.source_success_rate:.1f}% success)")
+            lines.append(f"source        {m.source}: {m.successes}/{m.attempts} attempts reached success "
+                         f"({100 * m.source_success_rate:.1f}%)")
+        if m.checkpoint:
+            lines.append(f"policy        {' + '.join(m.checkpoint)}")
+        for part in m.parts:
+            lines.append(f"part          {part['episodes']} episodes of {part['path']} ({part['source']})")
         if m.action_stats:
             lo = ", ".join(f"{v:+.2f}" for v in m.action_stats["p01"])
             hi = ", ".join(f"{v:+.2f}" for v in m.action_stats["p99"])
             lines.append(f"action p01    [{lo}]")
             lines.append(f"action p99    [{hi}]")
         return "\n".join(lines)
+
+
+#: What every part of a merged buffer must share (checked by :func:`merge_buffers`).
+MERGE_CHECKED = ("task", "control_mode", "obs_mode", "image_size", "camera_fov", "action_dim", "state_dim", "reward")
+
+
+def merge_buffers(out: str | Path, parts: list[str | Path]) -> DemoBuffer:
+    """A new buffer in ``out`` holding every episode of ``parts``, in order, with their seeds and instructions.
+
+    The parts must agree on :data:`MERGE_CHECKED` (one task, controller, observation and camera); what
+    each part was (source, checkpoint, DART noise, episodes) is kept in the new buffer's ``metadata.parts``.
+    E.g. the planner's demonstrations and a trained policy's rollouts (``mmada-rl collect --policy
+    checkpoint``), for one pretraining run to read.
+
+    Raises:
+        ValueError: fewer than two parts, or one given twice.
+        BufferMismatchError: a part differs from the first in a checked field (both values named).
+        FileExistsError: ``out`` already holds a buffer.
+    """
+    paths = [Path(p) for p in parts]
+    if len(paths) < 2:
+        raise ValueError(f"merging needs two or more buffers, got {len(paths)}.")
+    if len({p.resolve() for p in paths}) != len(paths):
+        raise ValueError(f"a buffer is given twice among {[str(p) for p in paths]}.")
+    buffers = [DemoBuffer.open(p) for p in paths]
+    first = buffers[0].metadata
+    for buf in buffers[1:]:
+        for name in MERGE_CHECKED:
+            if getattr(buf.metadata, name) != getattr(first, name):
+                raise BufferMismatchError(f"{buf.path} has {name}={getattr(buf.metadata, name)!r} but {paths[0]} has "
+                                          f"{getattr(first, name)!r}; a merged buffer holds episodes of one setting.")
+    sources = list(dict.fromkeys(b.metadata.source for b in buffers))
+    meta = BufferMetadata(
+        **{name: getattr(first, name) for name in MERGE_CHECKED},
+        max_episode_steps=max((b.metadata.max_episode_steps or 0) for b in buffers) or None,
+        source="+".join(sources),
+        parts=[{"path": str(b.path), "source": b.metadata.source, "checkpoint": list(b.metadata.checkpoint),
+                "episodes": b.metadata.num_episodes, "keep_after_success": b.metadata.keep_after_success,
+                "action_noise": b.metadata.action_noise} for b in buffers],
+        attempts=sum(b.metadata.attempts for b in buffers),
+        successes=sum(b.metadata.successes for b in buffers),
+        next_seed=max(b.metadata.next_seed for b in buffers),
+    )
+    merged = DemoBuffer.create(out, meta, capacity=sum(len(b) for b in buffers))
+    for buf in buffers:
+        for episode, seed in zip(buf.episodes(), buf.metadata.seeds):
+            instruction = buf.metadata.instructions[int(episode.get(INSTRUCTION_ID_KEY)[0])]
+            merged.add_episode(episode, seed=seed, instruction=instruction)
+    return merged

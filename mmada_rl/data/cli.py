@@ -35,6 +35,10 @@ def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
 def _run_collect(args: argparse.Namespace) -> int:
     from mmada_rl.data.collect import collect
 
+    if bool(args.checkpoint) != (args.policy == "checkpoint"):
+        print("mmada-rl collect: error: --policy checkpoint records the policy given by --checkpoint PATH [PATH ...]; "
+              "--checkpoint goes with it alone.", file=sys.stderr)
+        return 2
     cfg = env_config_from_args(args)
     try:
         result = collect(
@@ -42,6 +46,7 @@ def _run_collect(args: argparse.Namespace) -> int:
             cfg,
             episodes=args.episodes,
             policy=args.policy,
+            checkpoint=args.checkpoint or (),
             only_success=args.only_success,
             keep_after_success=args.keep_after_success,
             action_noise=args.action_noise,
@@ -55,6 +60,9 @@ def _run_collect(args: argparse.Namespace) -> int:
         print(f"\ninterrupted: {buf.metadata.num_episodes} finished episodes are kept in {args.out}; "
               "run the same command again to resume.", file=sys.stderr)
         return 130
+    except (FileNotFoundError, ValueError) as err:
+        print(f"mmada-rl collect: error: {err}", file=sys.stderr)
+        return 2
     print(result.buffer.summary())
     print(f"this run        {result.new_episodes} new episodes from {result.attempts} attempts "
           f"({100 * result.success_rate:.1f}% {args.policy} success), {result.steps} steps in {result.seconds:.1f} s")
@@ -64,6 +72,18 @@ def _run_collect(args: argparse.Namespace) -> int:
         print(f"stopped after {result.attempts} attempts with {result.buffer.metadata.num_episodes}/{args.episodes} "
               "episodes; run again to continue, or raise --max-attempts.", file=sys.stderr)
         return 1
+    return 0
+
+
+def _run_merge(args: argparse.Namespace) -> int:
+    from mmada_rl.data.buffer import merge_buffers
+
+    try:
+        merged = merge_buffers(args.out, args.buffers)
+    except (FileExistsError, FileNotFoundError, ValueError) as err:
+        print(f"mmada-rl merge: error: {err}", file=sys.stderr)
+        return 2
+    print(merged.summary())
     return 0
 
 
@@ -88,7 +108,7 @@ def _run_import(args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "collect",
-        help="record demonstrations (motion planner) or rollouts (random policy) into a buffer directory",
+        help="record demonstrations (motion planner) or rollouts (random or trained policy) into a buffer directory",
         description="Record episodes into a TorchRL replay buffer on disk. Re-running the same command resumes; "
         "an interrupted run keeps every finished episode.",
     )
@@ -96,11 +116,17 @@ def add_parser(sub) -> None:
     p.add_argument("--episodes", type=int, required=True, help="number of episodes the buffer should hold in the end.")
     p.add_argument("--out", required=True, help="buffer directory (created, or resumed if it already holds one; a buffer is "
                    "allocated for the --episodes it was created with, so grow one by collecting anew with more).")
-    p.add_argument("--policy", default="planner", choices=["planner", "scripted", "random"],
+    p.add_argument("--policy", default="planner", choices=["planner", "scripted", "random", "checkpoint"],
                    help="planner: ManiSkill's motion-planning solution converted to --control-mode; scripted: a state-based "
-                   "expert (PickCube, PushCube, PullCube; pd_ee_delta_pose); random: uniform actions (default: %(default)s).")
+                   "expert (PickCube, PushCube, PullCube; pd_ee_delta_pose); random: uniform actions; checkpoint: the "
+                   "trained policy of --checkpoint, decoding greedily and executing whole chunks as `mmada-rl eval` does, "
+                   "each episode ending at its first success or the time limit (default: %(default)s).")
+    p.add_argument("--checkpoint", nargs="+", default=None, metavar="PATH",
+                   help="with --policy checkpoint: the policy's run, checkpoint or model directory; two or more act as "
+                   "one ensemble. The buffer takes the policy's camera, image size and observation mode.")
     p.add_argument("--only-success", default=None, action=argparse.BooleanOptionalAction,
-                   help="keep only episodes reaching the task's success (default: yes for planner and scripted, no for random).")
+                   help="keep only episodes reaching the task's success (default: yes for planner and scripted, no for "
+                   "random and checkpoint).")
     p.add_argument("--keep-after-success", action="store_true",
                    help="planner only: record each demonstration to the end of the planner's path (the arm slowing "
                    "down to a stop at the goal) instead of ending it at the first success.")
@@ -111,6 +137,17 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="first env seed of a new buffer (default: %(default)s).")
     p.add_argument("--max-attempts", type=int, default=None, help="give up after this many attempts (default: 3 × missing episodes + 10).")
     p.set_defaults(func=_run_collect)
+
+    p = sub.add_parser(
+        "merge",
+        help="concatenate buffers of one task and setting into a new buffer",
+        description="Write a new buffer holding every episode of the given buffers, in order, with their seeds and "
+        "instructions (e.g. planner demonstrations and a trained policy's rollouts, for one pretraining run's "
+        "data.dir). The buffers must share task, control mode, observation mode, image size, camera and reward.",
+    )
+    p.add_argument("buffers", nargs="+", help="buffer directories, two or more")
+    p.add_argument("--out", required=True, help="new buffer directory (must not hold a buffer)")
+    p.set_defaults(func=_run_merge)
 
     p = sub.add_parser("info", help="print a buffer's summary", description="Print what a buffer directory holds.")
     p.add_argument("path", help="buffer directory")

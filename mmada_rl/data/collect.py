@@ -4,16 +4,17 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 from tqdm.auto import tqdm
 
 from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
 from mmada_rl.data.metadata import BufferMetadata
-from mmada_rl.data.sources import PlannerSource, PolicySource
+from mmada_rl.data.sources import CheckpointSource, PlannerSource, PolicySource
 from mmada_rl.envs.maniskill import EnvConfig
 from mmada_rl.envs.tasks import task_spec
 
-SOURCES = ("planner", "scripted", "random")
+SOURCES = ("planner", "scripted", "random", "checkpoint")
 
 
 @dataclass
@@ -34,11 +35,15 @@ class CollectResult:
 
 
 def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None, keep_after_success: bool = False,
-                action_noise: float = 0.0):
-    """The episode source named ``policy`` (``"planner"``, ``"scripted"``, ``"random"``), or a TorchRL policy object."""
+                action_noise: float = 0.0, checkpoint: Sequence[str | Path] = ()):
+    """The episode source named ``policy`` (``"planner"``, ``"scripted"``, ``"random"``, ``"checkpoint"``: the
+    policy saved in ``checkpoint``, several as one ensemble), or a TorchRL policy object."""
     if (keep_after_success or action_noise) and (policy != "planner" or torchrl_policy is not None):
         raise ValueError("keep_after_success and action_noise apply to the motion planner's demonstrations "
                          "(--policy planner) only.")
+    if bool(checkpoint) != (policy == "checkpoint" and torchrl_policy is None):
+        raise ValueError("--policy checkpoint records the policy given by --checkpoint PATH [PATH ...]; "
+                         "--checkpoint goes with it alone.")
     if torchrl_policy is not None:
         return PolicySource(cfg, torchrl_policy)
     if policy == "planner":
@@ -49,6 +54,8 @@ def make_source(cfg: EnvConfig, policy: str = "planner", torchrl_policy=None, ke
         return ScriptedSource(cfg)
     if policy == "random":
         return PolicySource(cfg, None)
+    if policy == "checkpoint":
+        return CheckpointSource(cfg, checkpoint)
     raise ValueError(f"unknown --policy {policy!r}; choose one of {SOURCES}.")
 
 
@@ -59,6 +66,7 @@ def collect(
     episodes: int,
     policy: str = "planner",
     torchrl_policy=None,
+    checkpoint: Sequence[str | Path] = (),
     only_success: bool | None = None,
     keep_after_success: bool = False,
     action_noise: float = 0.0,
@@ -75,8 +83,12 @@ def collect(
         episodes: total number of episodes the buffer should hold.
         policy: ``"planner"`` (ManiSkill's motion planner, converted to
             ``cfg.control_mode``), ``"scripted"`` (a state-based expert, see
-            :mod:`mmada_rl.data.scripted`) or ``"random"``.
+            :mod:`mmada_rl.data.scripted`), ``"random"`` or ``"checkpoint"``
+            (a trained policy, :class:`~mmada_rl.data.sources.CheckpointSource`).
         torchrl_policy: any TorchRL policy module; overrides ``policy``.
+        checkpoint: with ``policy="checkpoint"``, the policy's run, checkpoint or
+            model directories (two or more: their ensemble). The buffer takes the
+            policy's camera, image size and observation mode.
         only_success: keep only episodes that reach success (default: True for
             the planner and scripted experts, False otherwise).
         keep_after_success: planner episodes run to the end of the planner's
@@ -89,7 +101,8 @@ def collect(
     if episodes < 1:
         raise ValueError(f"episodes must be positive, got {episodes}.")
     only_success = (policy in ("planner", "scripted") and torchrl_policy is None) if only_success is None else only_success
-    source = make_source(cfg, policy, torchrl_policy, keep_after_success, action_noise)
+    source = make_source(cfg, policy, torchrl_policy, keep_after_success, action_noise, checkpoint)
+    cfg = source.cfg  # the env the source records in (a checkpoint's: its camera and image size)
     meta = BufferMetadata(
         task=cfg.task,
         control_mode=cfg.control_mode,
@@ -103,11 +116,12 @@ def collect(
         source=source.name,
         keep_after_success=bool(keep_after_success),
         action_noise=float(action_noise),
+        checkpoint=[str(c) for c in checkpoint],
         next_seed=seed,
     )
     longest = cfg.episode_steps or 200  # steps an episode may take: what the storage is allocated by
     buffer = DemoBuffer.open_or_create(out, meta, capacity=episodes * longest)
-    recorded = {k: getattr(buffer.metadata, k) for k in ("keep_after_success", "action_noise")}
+    recorded = {k: getattr(buffer.metadata, k) for k in ("keep_after_success", "action_noise", "checkpoint")}
     if recorded != {k: getattr(meta, k) for k in recorded}:
         source.close()
         settings = ", ".join(f"{k}={v}" for k, v in recorded.items())

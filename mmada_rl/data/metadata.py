@@ -52,7 +52,11 @@ class BufferMetadata:
         action_dim, state_dim: sizes of one action / state vector.
         reward: ``"dense"`` or ``"sparse"``.
         max_episode_steps: episode length limit used while recording.
-        source: ``"planner"``, ``"random"``, ``"scripted"``, ``"policy"`` or ``"h5"``.
+        source: ``"planner"``, ``"random"``, ``"scripted"``, ``"policy"``, ``"checkpoint"``, ``"h5"``,
+            or the parts' sources joined by ``"+"`` for a merged buffer.
+        checkpoint: the policy directories a ``"checkpoint"`` source recorded (several: their ensemble).
+        parts: for a merged buffer (:func:`~mmada_rl.data.merge_buffers`), what each part was: its
+            path, source, checkpoint, episodes, ``keep_after_success`` and ``action_noise``.
         keep_after_success: planner episodes run past their first success to the
             end of the planner's path (else they end at the first success).
         action_noise: std of the noise planner episodes were executed with (DART; 0: none).
@@ -78,6 +82,8 @@ class BufferMetadata:
     source: str = "planner"
     keep_after_success: bool = False
     action_noise: float = 0.0
+    checkpoint: list[str] = field(default_factory=list)
+    parts: list[dict] = field(default_factory=list)
     capacity: int = 0
     instructions: list[str] = field(default_factory=list)
     num_episodes: int = 0

@@ -1,17 +1,23 @@
-"""Where episodes come from: ManiSkill's motion planners, replayed action files, TorchRL policies.
+"""Where episodes come from: ManiSkill's motion planners, replayed action files, TorchRL policies,
+trained policies' checkpoints.
 
 Every source returns an :class:`Attempt`: the episode in TorchRL's rollout
 layout (or ``None`` when it failed) and why it failed.
 """
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
+import torch
 from tensordict import TensorDictBase
+from torchrl.envs import Transform
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from mmada_rl.data.recording import StepRecorder
 from mmada_rl.envs.maniskill import EnvConfig, make_gym_env
@@ -201,6 +207,7 @@ class PlannerSource:
     name = "planner"
 
     def __init__(self, cfg: EnvConfig, keep_after_success: bool = False, action_noise: float = 0.0):
+        self.cfg = cfg
         self.solve = planner_function(cfg.task)
         self.replayer = ActionReplayer(cfg, keep_after_success, action_noise)
 
@@ -237,6 +244,7 @@ class PolicySource:
 
         from mmada_rl.envs.maniskill import make_env
 
+        self.cfg = cfg
         self.env = make_env(cfg)
         self.policy = policy if policy is not None else RandomPolicy(self.env.action_spec)
         self.name = "random" if policy is None else name
@@ -252,3 +260,107 @@ class PolicySource:
 
     def close(self) -> None:
         self.env.close()
+
+
+class TransitionLog(Transform):
+    """Keep every step the env executes as one transition in TorchRL's rollout layout.
+
+    Appended to a single env that a chunk policy drives through ``MultiAction``
+    (:func:`~mmada_rl.policy.make_policy_env`), it sees each action of a chunk,
+    which the outer transition (one per decision) does not show: the observation
+    the action was taken in, the action, and the step's ``("next", ...)`` entries.
+
+    Args:
+        keys: the entries of a transition, in rollout layout (e.g.
+            :meth:`DemoBuffer.transition_keys <mmada_rl.data.DemoBuffer.transition_keys>`).
+    """
+
+    def __init__(self, keys: Sequence) -> None:
+        super().__init__()
+        keys = [k if isinstance(k, tuple) else (k,) for k in keys]
+        self.root_keys = [k for k in keys if k[0] != "next"]
+        self.next_keys = [k[1:] for k in keys if k[0] == "next"]
+        self._steps: list[TensorDictBase] = []  # cleared, never rebound (as StepLog's)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        self._steps.clear()
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        step = tensordict.select(*self.root_keys).clone()
+        step.set("next", next_tensordict.select(*self.next_keys).clone())
+        self._steps.append(step)
+        return next_tensordict
+
+    def episode(self) -> TensorDictBase:
+        """The steps since the last reset as a ``[T]`` tensordict."""
+        if not self._steps:
+            raise ValueError("no step executed since the last reset.")
+        return torch.stack(self._steps)
+
+
+class CheckpointSource:
+    """Episodes of a trained policy: one checkpoint, or several as one ensemble (what ``mmada-rl eval`` runs).
+
+    The policy decodes greedily and executes its whole chunks, as in evaluation;
+    every executed action is recorded, so the buffer holds the policy's own
+    behaviour in the demonstrations' format (e.g. a teacher's rollouts for a
+    student to imitate). An episode ends at the task's first success, as a
+    planner demonstration does, or at the time limit.
+
+    The env takes the policy's camera, image size and observation mode; ``cfg``
+    must agree where it names them (its ``camera_fov`` ``None``: the policy's).
+
+    Args:
+        cfg: the recording env (task, control mode, reward, episode length).
+        checkpoints: run, checkpoint or model directories (two or more: their ensemble).
+        device: where the policy runs.
+    """
+
+    name = "checkpoint"
+
+    def __init__(self, cfg: EnvConfig, checkpoints: Sequence[str | Path], device: str = "cpu"):
+        from mmada_rl.data.buffer import IMAGE_KEYS, TRANSITION_KEYS
+        from mmada_rl.envs.maniskill import make_env
+        from mmada_rl.evaluation import eval_env_config, load_actor
+        from mmada_rl.policy.execution import make_policy_env
+
+        if not checkpoints:
+            raise ValueError("a checkpoint source needs at least one policy directory (--checkpoint PATH).")
+        actor = load_actor(list(checkpoints), device)
+        policy_cfg = eval_env_config(actor, cfg.task, control_mode=cfg.control_mode, reward=cfg.reward,
+                                     max_episode_steps=cfg.max_episode_steps)
+        for name, flag in (("obs_mode", "--obs-mode"), ("image_size", "--image-size"), ("camera_fov", "--camera-fov")):
+            given, policy = getattr(cfg, name), getattr(policy_cfg, name)
+            if given != policy and not (name == "camera_fov" and given is None):
+                fix = f"collect with {flag} {policy} (or leave it out)" if policy is not None else f"leave {flag} out"
+                raise ValueError(f"the policy in {', '.join(map(str, checkpoints))} was trained with {name}={policy!r} "
+                                 f"but {given!r} was asked for; {fix}.")
+        self.cfg = dataclasses.replace(policy_cfg, ignore_terminations=False, stage_flags=False)
+        keys = TRANSITION_KEYS + (IMAGE_KEYS if self.cfg.obs_mode == "rgb" else ())
+        self.log = TransitionLog(keys)
+        log = self.log
+        self.penv = make_policy_env(make_env(self.cfg, extra_transform=lambda: log), actor)
+        self.action_dim = int(self.penv.env.action_spec.shape[-1])
+        if self.action_dim != self.penv.actor.action_dim:
+            self.close()
+            raise ValueError(f"{cfg.task} with control_mode={cfg.control_mode!r} takes {self.action_dim}-d actions but "
+                             f"the policy outputs {self.penv.actor.action_dim}-d ones; collect in the control mode it "
+                             "was trained in.")
+        self.state_dim = int(self.penv.env.observation_spec["observation", "state"].shape[-1])
+
+    def __call__(self, seed: int) -> Attempt:
+        penv, limit = self.penv, self.cfg.episode_steps or 200
+        torch.manual_seed(seed)  # a policy that draws noise (Diffusion Policy) repeats with the episode
+        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+            td = penv.env.reset(seed=seed)
+            for _ in range(limit + 1):  # decisions; the env ends the episode at success or its limit
+                td = penv.env.step(penv.policy(td))
+                if td.get(("next", "done")).any():
+                    break
+                td = step_mdp(td)
+        episode = self.log.episode()
+        return Attempt(episode, bool(episode.get(("next", "success")).any()))
+
+    def close(self) -> None:
+        self.penv.env.close()
