@@ -35,10 +35,6 @@ def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
 def _run_collect(args: argparse.Namespace) -> int:
     from mmada_rl.data.collect import collect
 
-    if bool(args.checkpoint) != (args.policy == "checkpoint"):
-        print("mmada-rl collect: error: --policy checkpoint records the policy given by --checkpoint PATH [PATH ...]; "
-              "--checkpoint goes with it alone.", file=sys.stderr)
-        return 2
     cfg = env_config_from_args(args)
     try:
         result = collect(

@@ -16,12 +16,12 @@ import gymnasium as gym
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import Transform
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from mmada_rl.data.recording import StepRecorder
 from mmada_rl.envs.maniskill import EnvConfig, make_gym_env
 from mmada_rl.envs.tasks import task_spec
+from mmada_rl.keys import ACTION_KEY
 
 #: The control mode ManiSkill's motion-planning solutions command.
 PLANNER_CONTROL_MODE = "pd_joint_pos"
@@ -262,48 +262,13 @@ class PolicySource:
         self.env.close()
 
 
-class TransitionLog(Transform):
-    """Keep every step the env executes as one transition in TorchRL's rollout layout.
-
-    Appended to a single env that a chunk policy drives through ``MultiAction``
-    (:func:`~mmada_rl.policy.make_policy_env`), it sees each action of a chunk,
-    which the outer transition (one per decision) does not show: the observation
-    the action was taken in, the action, and the step's ``("next", ...)`` entries.
-
-    Args:
-        keys: the entries of a transition, in rollout layout (e.g.
-            :meth:`DemoBuffer.transition_keys <mmada_rl.data.DemoBuffer.transition_keys>`).
-    """
-
-    def __init__(self, keys: Sequence) -> None:
-        super().__init__()
-        keys = [k if isinstance(k, tuple) else (k,) for k in keys]
-        self.root_keys = [k for k in keys if k[0] != "next"]
-        self.next_keys = [k[1:] for k in keys if k[0] == "next"]
-        self._steps: list[TensorDictBase] = []  # cleared, never rebound (as StepLog's)
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        self._steps.clear()
-        return tensordict_reset
-
-    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        step = tensordict.select(*self.root_keys).clone()
-        step.set("next", next_tensordict.select(*self.next_keys).clone())
-        self._steps.append(step)
-        return next_tensordict
-
-    def episode(self) -> TensorDictBase:
-        """The steps since the last reset as a ``[T]`` tensordict."""
-        if not self._steps:
-            raise ValueError("no step executed since the last reset.")
-        return torch.stack(self._steps)
-
-
 class CheckpointSource:
     """Episodes of a trained policy: one checkpoint, or several as one ensemble (what ``mmada-rl eval`` runs).
 
     The policy decodes greedily and executes its whole chunks, as in evaluation;
-    every executed action is recorded, so the buffer holds the policy's own
+    every executed action is recorded (the :class:`~mmada_rl.policy.StepLog` of
+    :func:`~mmada_rl.policy.make_policy_env`, which sees each step of a chunk,
+    as :meth:`~mmada_rl.policy.StepLog.transitions`), so the buffer holds the policy's own
     behaviour in the demonstrations' format (e.g. a teacher's rollouts for a
     student to imitate). An episode ends at the task's first success, as a
     planner demonstration does, or at the time limit.
@@ -321,7 +286,6 @@ class CheckpointSource:
 
     def __init__(self, cfg: EnvConfig, checkpoints: Sequence[str | Path], device: str = "cpu"):
         from mmada_rl.data.buffer import IMAGE_KEYS, TRANSITION_KEYS
-        from mmada_rl.envs.maniskill import make_env
         from mmada_rl.evaluation import eval_env_config, load_actor
         from mmada_rl.policy.execution import make_policy_env
 
@@ -337,10 +301,9 @@ class CheckpointSource:
                 raise ValueError(f"the policy in {', '.join(map(str, checkpoints))} was trained with {name}={policy!r} "
                                  f"but {given!r} was asked for; {fix}.")
         self.cfg = dataclasses.replace(policy_cfg, ignore_terminations=False, stage_flags=False)
-        keys = TRANSITION_KEYS + (IMAGE_KEYS if self.cfg.obs_mode == "rgb" else ())
-        self.log = TransitionLog(keys)
-        log = self.log
-        self.penv = make_policy_env(make_env(self.cfg, extra_transform=lambda: log), actor)
+        self.keys = TRANSITION_KEYS + (IMAGE_KEYS if self.cfg.obs_mode == "rgb" else ())
+        logged = {k[1:] if isinstance(k, tuple) and k[0] == "next" else k for k in self.keys} - {ACTION_KEY}
+        self.penv = make_policy_env(self.cfg, actor, log_keys=sorted(logged, key=str))
         self.action_dim = int(self.penv.env.action_spec.shape[-1])
         if self.action_dim != self.penv.actor.action_dim:
             self.close()
@@ -359,7 +322,7 @@ class CheckpointSource:
                 if td.get(("next", "done")).any():
                     break
                 td = step_mdp(td)
-        episode = self.log.episode()
+        episode = self.penv.step_log.transitions().select(*self.keys)
         return Attempt(episode, bool(episode.get(("next", "success")).any()))
 
     def close(self) -> None:

@@ -221,12 +221,14 @@ class ChunkReward(MultiAction):
 
 
 class StepLog(Transform):
-    """Keep selected entries of every executed env step in memory (single env, for evaluation).
+    """Keep selected entries of every executed env step in memory (single env, for evaluation),
+    and the action each step executed.
 
     Placed before :class:`~torchrl.envs.transforms.MultiAction`, it sees each
     inner step of a chunk, which the outer transition does not show. ``steps[0]``
-    is the reset observation, ``steps[t]`` the state after ``t`` actions. The log
-    lives in the process that steps the env, so it is empty for ``ParallelEnv``.
+    is the reset observation, ``steps[t]`` the state after ``t`` actions, and
+    ``actions[t]`` the action that led from one to the other. The log lives in the
+    process that steps the env, so it is empty for ``ParallelEnv``.
 
     Args:
         keys: the entries to keep (e.g. ``("observation", "image")``, ``"success"``).
@@ -236,21 +238,41 @@ class StepLog(Transform):
         super().__init__()
         self.keys = list(keys)
         # MultiAction steps a rebuilt parent env holding a shallow clone of this transform:
-        # keep the records in one shared list that is cleared, never rebound.
+        # keep the records in shared lists that are cleared, never rebound.
         self._steps: list[TensorDictBase] = []
+        self._actions: list[torch.Tensor] = []
 
     @property
     def steps(self) -> list[TensorDictBase]:
         """The entries of every step since the last reset (``steps[t]``: after ``t`` actions)."""
         return self._steps
 
+    @property
+    def actions(self) -> list[torch.Tensor]:
+        """The action of every step since the last reset (``actions[t]``: from ``steps[t]`` to ``steps[t + 1]``)."""
+        return self._actions
+
+    def transitions(self) -> TensorDictBase:
+        """The steps since the last reset as a ``[T]`` tensordict in TorchRL's rollout layout: the entries
+        logged at reset, of the state each action was taken in; the action; under ``"next"`` the entries
+        logged after it."""
+        if not self._actions:
+            raise ValueError("no step executed since the last reset.")
+        before = self._steps[0].keys(True, True)
+        episode = torch.stack([step.select(*before) for step in self._steps[:-1]])
+        episode.set(ACTION_KEY, torch.stack(self._actions))
+        episode.set("next", torch.stack(self._steps[1:]))
+        return episode
+
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         self._steps.clear()
+        self._actions.clear()
         self._steps.append(tensordict_reset.select(*self.keys, strict=False).clone())
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         self._steps.append(next_tensordict.select(*self.keys, strict=False).clone())
+        self._actions.append(tensordict.get(ACTION_KEY).clone())
         return next_tensordict
 
 
