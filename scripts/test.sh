@@ -5,6 +5,10 @@
 #   scripts/test.sh                      # the whole suite
 #   scripts/test.sh -m "not slow"        # skip the simulator/planner tests
 #   scripts/test.sh tests/test_doctor.py
+#   scripts/test.sh -n 0                 # in one process (pytest-xdist's -n: the last one given wins)
+#
+# The tests run in one pytest-xdist worker per core, each test file whole in one worker
+# (its module-scoped fixtures built once; the session-scoped ones once per worker).
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -16,4 +20,4 @@ cd "$REPO"
 if [[ $# -eq 0 ]]; then
     set -- tests/
 fi
-exec "$VENV/bin/python" -m pytest -q --durations=15 "$@"
+exec "$VENV/bin/python" -m pytest -q --durations=15 -n auto --dist loadfile "$@"
