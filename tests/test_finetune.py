@@ -24,7 +24,7 @@ from mmada_rl.keys import (ACTION_GRIPPER_ONLY_KEY, ACTION_IS_PAD_KEY, ADVANTAGE
                            VALUE_TARGET_KEY)
 from mmada_rl.objectives import PathPPOLoss, RewardWeightedDiffusionLoss
 from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
-from mmada_rl.objectives.advantages import group_relative_advantages
+from mmada_rl.objectives.advantages import DecisionIndexBaseline, group_relative_advantages, returns_to_go
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAModel, make_policy_env
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from mmada_rl.training.checkpoint import load_checkpoint
@@ -436,6 +436,30 @@ def test_returns_to_go_as_advantages_discount_each_decisions_future():
     assert episode.get(VALUE_TARGET_KEY).reshape(-1).tolist() == [4.0, 6.0, 8.0, 8.0]
     with pytest.raises(ValueError, match="one rollout per initial state"):
         recipe_utils().EpisodeGroups(2, relative=True, discount=0.5)
+
+
+def test_decision_index_baseline_scores_returns_to_go_against_recent_episodes_at_the_same_index():
+    """advantage.baseline_episodes: a successful episode as fast as the recent ones scores 0 at every decision (its
+    early chunks are not pushed down for being far from the success), a faster one above, a failed one below."""
+    discount = 0.5
+    success = lambda n: returns_to_go(torch.tensor([0.0] * (n - 1) + [8.0]), discount)  # noqa: E731
+    baseline = DecisionIndexBaseline(episodes=3)
+    for _ in range(3):
+        typical = baseline(success(3))
+    torch.testing.assert_close(typical, torch.zeros(3))  # as the kept episodes went: nothing to learn
+    assert success(3).tolist() == [2.0, 4.0, 8.0]  # standardised in a batch, the first two would be pushed down
+    faster = baseline(success(2))
+    assert (faster > 0).all()
+    failed = baseline(torch.zeros(4))
+    assert (failed[:3] < 0).all() and failed[3] == 0  # index 3: no other kept episode reached it
+    assert len(baseline) == 3  # the window keeps the last three episodes
+    restored = DecisionIndexBaseline(episodes=1)
+    restored.load_state_dict(baseline.state_dict())
+    torch.testing.assert_close(restored(success(3)), baseline(success(3)))  # a resumed run scores as it would have
+    with pytest.raises(ValueError, match="at least one episode"):
+        DecisionIndexBaseline(episodes=0)
+    with pytest.raises(ValueError, match="needs a discount"):
+        recipe_utils().EpisodeGroups(1, relative=False, baseline=DecisionIndexBaseline(2))
 
 
 def test_weight_goal_applies_the_row_weights_to_the_goal_tokens(model, toy_pretrain_run):
@@ -911,6 +935,9 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     ("noisy_return_to_go", ["advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
                             "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0",
                             "optim.lr=1e-4", "optim.lr_decay=cosine"], 30),
+    ("noisy_return_to_go_baseline", ["advantage.estimator=return_to_go", "advantage.baseline_episodes=4",
+                                     "loss.rwr.weighting=signed", "loss.rwr.normalize_weights=true",
+                                     "collector.action_noise=0.1", "eval.episodes=0"], 30),
 ])
 def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
@@ -937,6 +964,12 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         lrs = [tuple(map(float, line.split(","))) for line in (scalars / "lr.csv").read_text().split()]
         assert len(lrs) >= 2 and all(b[1] < a[1] for a, b in zip(lrs, lrs[1:]))
         assert lrs[0][1] < 1e-4 and lrs[-1][0] >= steps and lrs[-1][1] == pytest.approx(1e-5)
+    if name == "noisy_return_to_go_baseline":  # returns to go stored as value targets, relative ones as advantages
+        rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(tmp_path / name / "online_buffer")
+        advantage, to_go = rows.get(ADVANTAGE_KEY).reshape(-1), rows.get(VALUE_TARGET_KEY).reshape(-1)
+        assert len(rows) and not torch.equal(advantage, to_go)
+        kept = load_checkpoint(tmp_path / name).trainer_state["extra"]["advantage_baseline"]
+        assert kept["episodes"] == 4 and 2 <= len(kept["window"]) <= 4  # checkpointed for a resume
     if name == "noisy_privileged_critic":  # GAE's critic read the simulator's state, the policy its pixels
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
@@ -1082,6 +1115,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["value.warmup_env_steps=10", "advantage.estimator=return"], "use advantage.estimator=gae or value.warmup_env_steps=0"),
     (["optim.lr_decay=linear"], "optim.lr_decay='linear'; use constant or cosine"),
     (["optim.min_lr_ratio=2"], "optim.min_lr_ratio must lie in [0, 1]"),
+    (["advantage.baseline_episodes=8"], "a decision-index baseline (> 0) compares returns to go"),
+    (["advantage.estimator=return_to_go", "advantage.baseline_episodes=-1"], "advantage.baseline_episodes=-1"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

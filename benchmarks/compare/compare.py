@@ -90,6 +90,11 @@ _RETURN_TO_GO_NOISE = [a.replace("estimator=gae", "estimator=return_to_go") for 
 _RETURN_TO_GO_KEEP = _keep_pretraining_loss(_RETURN_TO_GO_NOISE)
 #: and at the learning rate 1e-4 (3.3x the recipe's 3e-5)
 _RETURN_TO_GO_KEEP_LR1E4 = [*_RETURN_TO_GO_KEEP, "optim.lr=1e-4"]
+#: the same with each return to go relative to the last 50 episodes' at its decision index, in units of their spread
+#: (advantage.baseline_episodes), instead of standardised over each minibatch's online rows
+_RETURN_TO_GO_BASELINE_KEEP_LR1E4_EMA = [*(a.replace("standardize_advantage=true", "standardize_advantage=false")
+                                          for a in _RETURN_TO_GO_KEEP_LR1E4),
+                                         "advantage.baseline_episodes=50", "ema.enabled=true"]
 #: and the demonstration windows in the hold after a grasp scored on the gripper alone
 _RETURN_TO_GO_KEEP_LR1E4_GRIPPER = [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true"]
 #: and evaluated and saved as the moving average of the weights
@@ -186,6 +191,11 @@ METHODS = {
                                                 "average of its weights (ours: the same training, WeightEMA's average; "
                                                 "for tasks without a grasp hold)", "rgb+proprio",
                                                 [*_RETURN_TO_GO_KEEP_LR1E4, "ema.enabled=true"], True),
+    "mmada_return_to_go_baseline_noise_keep_lr1e4_ema": ("mmada_return_to_go_noise_keep_lr1e4_ema with each return to "
+                                                         "go relative to the last 50 episodes' at the same decision "
+                                                         "index, over their spread, instead of standardised over the "
+                                                         "minibatch (ours: a baseline of time alone)", "rgb+proprio",
+                                                         _RETURN_TO_GO_BASELINE_KEEP_LR1E4_EMA, True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",

@@ -8,6 +8,11 @@ The critic-free alternative below compares rollouts that started from the same
 initial state, as TorchRL's ``vla_grpo`` recipe (SimpleVLA-RL) does; or, with
 no baseline at all, takes each episode's return as the advantage of its decisions
 (with a sparse success reward and binary weights: imitate the successful rollouts).
+Each decision's discounted return to its episode's end (:func:`returns_to_go`) can
+be compared with what recent episodes returned from the same decision index
+(:class:`DecisionIndexBaseline`): a baseline that depends on the time alone, not on
+the state, so the advantage says how much better than usual the rest of this
+episode went, not how close to its end the decision was.
 
 Episodes end at the first success (ManiSkill's ``success_once``), so an
 undiscounted or discounted sum of positive dense rewards favours lingering next
@@ -18,9 +23,11 @@ state that keeps paying the best per-step reward, so that finishing is worth mos
 """
 from __future__ import annotations
 
+from collections import deque
+
 import torch
 
-__all__ = ["absorbing_success_reward", "group_relative_advantages", "returns_to_go"]
+__all__ = ["DecisionIndexBaseline", "absorbing_success_reward", "group_relative_advantages", "returns_to_go"]
 
 
 def group_relative_advantages(returns: torch.Tensor, groups: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
@@ -117,3 +124,72 @@ def returns_to_go(rewards: torch.Tensor, gamma: float, final_value: float = 0.0)
         running = float(rewards[t]) + gamma * running
         out[t] = running
     return out
+
+
+class DecisionIndexBaseline:
+    """Returns to go relative to recent episodes at the same decision index, in units of their spread.
+
+    A decision's discounted return to its episode's end grows towards the end of a
+    successful episode (the absorbing success is discounted less), so on a task the
+    policy mostly solves, standardising returns to go over a batch ranks the early
+    decisions of every successful episode below its late ones and pushes them down.
+    This baseline keeps the returns to go of the last ``episodes`` finished episodes
+    and gives decision ``t`` of a new one the advantage ``(G_t - b_t) / s``, where
+    ``b_t`` is the mean return to go at index ``t`` over the kept episodes that lasted
+    beyond ``t`` (a baseline of time alone, the REINFORCE baseline's time-dependent
+    form) and ``s`` the root mean square of every kept decision's ``G - b``. An
+    episode that went as the recent ones did scores about 0 throughout; one that
+    finished sooner scores above, one that failed below.
+
+    :meth:`__call__` adds the episode to the window before it scores it, so the
+    first episode scores 0 everywhere and an episode's own return weighs ``1 / n``
+    in the baseline of an index ``n`` kept episodes reached.
+
+    Args:
+        episodes: how many recent episodes the baseline and the spread average over.
+        eps: the least spread divided by.
+
+    Examples:
+        >>> baseline = DecisionIndexBaseline(episodes=10)
+        >>> baseline(torch.tensor([2.0, 4.0]))             # the first episode: no other to compare with
+        tensor([0., 0.])
+        >>> baseline(torch.tensor([4.0, 6.0, 8.0]))        # better at both shared indices; index 2 alone
+        tensor([1.1180, 1.1180, 0.0000])
+    """
+
+    def __init__(self, episodes: int, eps: float = 1e-6) -> None:
+        if int(episodes) < 1:
+            raise ValueError(f"the baseline needs at least one episode, got episodes={episodes!r}.")
+        self.episodes, self.eps = int(episodes), float(eps)
+        self.window: deque[torch.Tensor] = deque(maxlen=self.episodes)
+
+    def __len__(self) -> int:
+        return len(self.window)
+
+    def state_dict(self) -> dict:
+        """The kept episodes' returns to go (checkpointed, so that a resumed run scores as it would have)."""
+        return {"episodes": self.episodes, "window": [g.clone() for g in self.window]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.episodes = int(state["episodes"])
+        self.window = deque((torch.as_tensor(g).float() for g in state["window"]), maxlen=self.episodes)
+
+    def mean_by_index(self) -> torch.Tensor:
+        """Float ``[L]``: the mean return to go at each index over the kept episodes that reached it."""
+        length = max(g.shape[0] for g in self.window)
+        total, count = torch.zeros(length), torch.zeros(length)
+        for g in self.window:
+            total[: g.shape[0]] += g
+            count[: g.shape[0]] += 1
+        return total / count
+
+    def __call__(self, to_go: torch.Tensor) -> torch.Tensor:
+        """Float ``[T]``: the advantages of one finished episode's returns to go ``[T]`` (then kept)."""
+        if to_go.ndim != 1:
+            raise ValueError(f"returns to go must be 1-d (one episode), got shape {tuple(to_go.shape)}.")
+        to_go = to_go.detach().float().cpu()
+        self.window.append(to_go)
+        mean = self.mean_by_index()
+        residuals = torch.cat([g - mean[: g.shape[0]] for g in self.window])
+        spread = residuals.pow(2).mean().sqrt().clamp_min(self.eps)
+        return (to_go - mean[: to_go.shape[0]]) / spread

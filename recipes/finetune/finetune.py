@@ -21,7 +21,8 @@ of rollouts that share an initial state (``group``) or from the episode's return
 itself (``return``; with ``env.reward=sparse`` and ``loss.rwr.weighting=binary``
 the online rows are the successful rollouts: filtered self-imitation) or each
 decision's own discounted return to the episode's end (``return_to_go``, discount
-``gamma ** k`` per decision, nothing bootstrapped). Episodes end
+``gamma ** k`` per decision, nothing bootstrapped; with ``advantage.baseline_episodes=N``
+relative to the last ``N`` episodes' returns to go at the same decision index). Episodes end
 at the first success; with ``advantage.absorbing_success=true`` (the default) the
 chunk that succeeds also earns the discounted value of staying in success at the
 best per-step reward, ``gamma**j / (1 - gamma)``, so that finishing is worth more than
@@ -187,6 +188,8 @@ def main(cfg: DictConfig) -> None:
         iteration, env_steps, updates, history = ckpt.step, extra["env_steps"], extra["updates"], extra["eval_history"]
         value_op.load_state_dict(extra["value"])
         value_optim.load_state_dict(extra["value_optimizer"])
+        if "advantage_baseline" in extra:
+            groups.baseline.load_state_dict(extra["advantage_baseline"])
         if (run_dir / BUFFER_DIR).exists():
             online.loads(run_dir / BUFFER_DIR)
         print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows")
@@ -202,6 +205,8 @@ def main(cfg: DictConfig) -> None:
             online.dumps(run_dir / BUFFER_DIR)
         extra = {"env_steps": env_steps, "updates": updates, "eval_history": history,
                  "value": value_op.state_dict(), "value_optimizer": value_optim.state_dict()}
+        if groups is not None and groups.baseline is not None:
+            extra["advantage_baseline"] = groups.baseline.state_dict()
         with ema_checkpointed(ema) as own:  # the average is the saved model; own: the weights training resumes from
             return save_checkpoint(run_dir, iteration, model=model, optimizer=optimizer, config=config,
                                    generators=generators, extra={**extra, **own}, keep=int(cfg.checkpoint.keep))

@@ -43,7 +43,12 @@ from mmada_rl.keys import (
     VALUE_TARGET_KEY,
 )
 from mmada_rl.objectives import MaskedDiffusionLoss, PathPPOLoss, RewardWeightedDiffusionLoss
-from mmada_rl.objectives.advantages import absorbing_success_reward, group_relative_advantages, returns_to_go
+from mmada_rl.objectives.advantages import (
+    DecisionIndexBaseline,
+    absorbing_success_reward,
+    group_relative_advantages,
+    returns_to_go,
+)
 from mmada_rl.policy import ExecutionNoise, MMaDAActor, MMaDAEnsemble, MMaDAModel
 from mmada_rl.policy.actor import DECODING_PATH_KEY
 from mmada_rl.policy.execution import PolicyEnv, make_policy_env
@@ -73,6 +78,10 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"algo={cfg.algo!r} is not a fine-tuning algorithm; use algo=rwr or algo=ppo.")
     if cfg.advantage.estimator not in ESTIMATORS:
         raise ValueError(f"advantage.estimator={cfg.advantage.estimator!r}; use gae, group, return or return_to_go.")
+    baseline_episodes = int(cfg.advantage.get("baseline_episodes", 0))
+    if baseline_episodes < 0 or (baseline_episodes > 0 and cfg.advantage.estimator != "return_to_go"):
+        raise ValueError(f"advantage.baseline_episodes={baseline_episodes!r}: a decision-index baseline (> 0) compares "
+                         "returns to go (advantage.estimator=return_to_go); 0 turns it off.")
     if cfg.pretrained is None:
         raise ValueError("pretrained=null: pass the pretraining run (pretrained=runs/pretrain_...) or a checkpoint/model directory.")
     if not 0.0 <= float(cfg.demos.ratio) <= 1.0:
@@ -383,13 +392,18 @@ class EpisodeGroups:
     each decision's advantage is instead its own discounted return from that chunk to
     the episode's end (REINFORCE's reward-to-go), ``G_t = r_t + discount * G_{t+1}``:
     no critic, so no bootstrap either, and an episode cut by the time limit counts
-    nothing after its last step.
+    nothing after its last step. With ``baseline`` (a :class:`DecisionIndexBaseline`)
+    the advantage is that return to go relative to the recent episodes' at the same
+    decision index, in units of their spread; the value target stays ``G_t``.
     """
 
-    def __init__(self, group_size: int, relative: bool = True, discount: float | None = None) -> None:
+    def __init__(self, group_size: int, relative: bool = True, discount: float | None = None,
+                 baseline: DecisionIndexBaseline | None = None) -> None:
         if discount is not None and (group_size != 1 or relative):
             raise ValueError("per-decision returns (discount) take one rollout per initial state and no group baseline.")
-        self.group_size, self.relative, self.discount = int(group_size), bool(relative), discount
+        if baseline is not None and discount is None:
+            raise ValueError("a decision-index baseline compares returns to go: it needs a discount.")
+        self.group_size, self.relative, self.discount, self.baseline = int(group_size), bool(relative), discount, baseline
         self.running: dict[int, list[TensorDictBase]] = {}  # worker -> decisions of its unfinished episode
         self.groups: dict[int, list[TensorDictBase]] = {}  # seed -> finished episodes
 
@@ -418,7 +432,8 @@ class EpisodeGroups:
         if self.discount is not None:
             for ep in episodes:
                 to_go = returns_to_go(ep.get(("next", "reward")).reshape(-1), self.discount)
-                ep.set(ADVANTAGE_KEY, to_go.reshape(ep.shape))
+                advantage = to_go if self.baseline is None else self.baseline(to_go)
+                ep.set(ADVANTAGE_KEY, advantage.reshape(ep.shape))
                 ep.set(VALUE_TARGET_KEY, to_go.reshape(*ep.shape, 1))
             return episodes
         returns = torch.stack([ep.get(("next", "reward")).sum() for ep in episodes])
@@ -431,11 +446,14 @@ class EpisodeGroups:
 
 def make_episode_groups(cfg: DictConfig, model: MMaDAModel) -> EpisodeGroups | None:
     """Critic-free advantages: group-relative (``group``) or plain (``return``) episode returns, or each decision's
-    discounted return to the episode's end (``return_to_go``, discount ``gamma ** k`` per decision); ``None`` for GAE."""
+    discounted return to the episode's end (``return_to_go``, discount ``gamma ** k`` per decision; relative to the
+    last ``advantage.baseline_episodes`` episodes' at the same decision index when that is > 0); ``None`` for GAE."""
     if cfg.advantage.estimator == "group":
         return EpisodeGroups(int(cfg.advantage.group_size))
     if cfg.advantage.estimator == "return_to_go":
-        return EpisodeGroups(1, relative=False, discount=decision_discount(cfg, model))
+        episodes = int(cfg.advantage.get("baseline_episodes", 0))
+        baseline = DecisionIndexBaseline(episodes) if episodes > 0 else None
+        return EpisodeGroups(1, relative=False, discount=decision_discount(cfg, model), baseline=baseline)
     return EpisodeGroups(1, relative=False) if cfg.advantage.estimator == "return" else None
 
 
