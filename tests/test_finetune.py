@@ -453,9 +453,12 @@ def test_decision_index_baseline_scores_returns_to_go_against_recent_episodes_at
     failed = baseline(torch.zeros(4))
     assert (failed[:3] < 0).all() and failed[3] == 0  # index 3: no other kept episode reached it
     assert len(baseline) == 3  # the window keeps the last three episodes
-    restored = DecisionIndexBaseline(episodes=1)
+    restored = DecisionIndexBaseline(episodes=3)
     restored.load_state_dict(baseline.state_dict())
     torch.testing.assert_close(restored(success(3)), baseline(success(3)))  # a resumed run scores as it would have
+    shorter = DecisionIndexBaseline(episodes=2)  # resumed with a shorter window: the two most recent episodes
+    shorter.load_state_dict(baseline.state_dict())
+    assert len(shorter) == 2 and torch.equal(shorter.window[-1], baseline.window[-1])
     with pytest.raises(ValueError, match="at least one episode"):
         DecisionIndexBaseline(episodes=0)
     with pytest.raises(ValueError, match="needs a discount"):
@@ -970,6 +973,17 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert len(rows) and not torch.equal(advantage, to_go)
         kept = load_checkpoint(tmp_path / name).trainer_state["extra"]["advantage_baseline"]
         assert kept["episodes"] == 4 and 2 <= len(kept["window"]) <= 4  # checkpointed for a resume
+        common = (f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
+                  *(o for o in overrides if not o.startswith("advantage.baseline_episodes")),
+                  "env.max_episode_steps=10", "checkpoint.resume=true")
+        shorter = run_recipe(*common, "advantage.baseline_episodes=2", f"collector.total_env_steps={steps + 30}")
+        assert shorter.returncode == 0, shorter.stderr[-3000:]
+        kept = load_checkpoint(tmp_path / name).trainer_state["extra"]["advantage_baseline"]
+        assert kept["episodes"] == 2 and len(kept["window"]) == 2  # the resumed run's own window length
+        off = run_recipe(*common, "advantage.baseline_episodes=0", "loss.rwr.standardize_advantage=true",
+                         f"collector.total_env_steps={steps + 30}")  # the budget spent: it loads and stops
+        assert off.returncode == 0, off.stderr[-3000:]
+        assert "the checkpoint's decision-index baseline (2 episodes) is not used" in off.stdout
     if name == "noisy_privileged_critic":  # GAE's critic read the simulator's state, the policy its pixels
         scalars = tmp_path / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()

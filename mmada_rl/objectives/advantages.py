@@ -171,7 +171,8 @@ class DecisionIndexBaseline:
         return {"episodes": self.episodes, "window": [g.clone() for g in self.window]}
 
     def load_state_dict(self, state: dict) -> None:
-        self.episodes = int(state["episodes"])
+        """Keep the saved episodes' returns to go; this baseline's own ``episodes`` stays the window's
+        length, so a resumed run with a shorter window keeps the most recent saved episodes."""
         self.window = deque((torch.as_tensor(g).float() for g in state["window"]), maxlen=self.episodes)
 
     def mean_by_index(self) -> torch.Tensor:

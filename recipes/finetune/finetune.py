@@ -189,7 +189,12 @@ def main(cfg: DictConfig) -> None:
         value_op.load_state_dict(extra["value"])
         value_optim.load_state_dict(extra["value_optimizer"])
         if "advantage_baseline" in extra:
-            groups.baseline.load_state_dict(extra["advantage_baseline"])
+            if groups is not None and groups.baseline is not None:
+                groups.baseline.load_state_dict(extra["advantage_baseline"])
+            else:
+                print(f"{PREFIX} the checkpoint's decision-index baseline "
+                      f"({len(extra['advantage_baseline']['window'])} episodes) is not used: "
+                      f"advantage.baseline_episodes=0")
         if (run_dir / BUFFER_DIR).exists():
             online.loads(run_dir / BUFFER_DIR)
         print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows")
