@@ -196,6 +196,10 @@ METHODS = {
                                                          "index, over their spread, instead of standardised over the "
                                                          "minibatch (ours: a baseline of time alone)", "rgb+proprio",
                                                          _RETURN_TO_GO_BASELINE_KEEP_LR1E4_EMA, True),
+    "mmada_demos_only_keep_lr1e4_ema": ("No-RL control of mmada_return_to_go_noise_keep_lr1e4_ema: the same updates, "
+                                        "learning rate, regularisers and moving average on demonstrations only (the "
+                                        "noisy rollouts collected, not learned from)", "rgb+proprio",
+                                        [*_RETURN_TO_GO_KEEP_LR1E4, "ema.enabled=true", "demos.ratio=1.0"], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",
