@@ -90,6 +90,8 @@ _RETURN_TO_GO_NOISE = [a.replace("estimator=gae", "estimator=return_to_go") for 
 _RETURN_TO_GO_KEEP = _keep_pretraining_loss(_RETURN_TO_GO_NOISE)
 #: and at the learning rate 1e-4 (3.3x the recipe's 3e-5)
 _RETURN_TO_GO_KEEP_LR1E4 = [*_RETURN_TO_GO_KEEP, "optim.lr=1e-4"]
+#: and evaluated and saved as the moving average of the weights
+_RETURN_TO_GO_KEEP_LR1E4_EMA = [*_RETURN_TO_GO_KEEP_LR1E4, "ema.enabled=true"]
 #: the same with each return to go relative to the last 50 episodes' at its decision index, in units of their spread
 #: (advantage.baseline_episodes), instead of standardised over each minibatch's online rows
 _RETURN_TO_GO_BASELINE_KEEP_LR1E4_EMA = [*(a.replace("standardize_advantage=true", "standardize_advantage=false")
@@ -190,7 +192,7 @@ METHODS = {
     "mmada_return_to_go_noise_keep_lr1e4_ema": ("mmada_return_to_go_noise_keep_lr1e4 evaluated and saved as the moving "
                                                 "average of its weights (ours: the same training, WeightEMA's average; "
                                                 "for tasks without a grasp hold)", "rgb+proprio",
-                                                [*_RETURN_TO_GO_KEEP_LR1E4, "ema.enabled=true"], True),
+                                                _RETURN_TO_GO_KEEP_LR1E4_EMA, True),
     "mmada_return_to_go_baseline_noise_keep_lr1e4_ema": ("mmada_return_to_go_noise_keep_lr1e4_ema with each return to "
                                                          "go relative to the last 50 episodes' at the same decision "
                                                          "index, over their spread, instead of standardised over the "
@@ -199,7 +201,7 @@ METHODS = {
     "mmada_demos_only_keep_lr1e4_ema": ("No-RL control of mmada_return_to_go_noise_keep_lr1e4_ema: the same updates, "
                                         "learning rate, regularisers and moving average on demonstrations only (the "
                                         "noisy rollouts collected, not learned from)", "rgb+proprio",
-                                        [*_RETURN_TO_GO_KEEP_LR1E4, "ema.enabled=true", "demos.ratio=1.0"], True),
+                                        [*_RETURN_TO_GO_KEEP_LR1E4_EMA, "demos.ratio=1.0"], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",
