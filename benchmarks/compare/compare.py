@@ -202,6 +202,11 @@ METHODS = {
                                         "learning rate, regularisers and moving average on demonstrations only (the "
                                         "noisy rollouts collected, not learned from)", "rgb+proprio",
                                         [*_RETURN_TO_GO_KEEP_LR1E4_EMA, "demos.ratio=1.0"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_ema_demos075": ("mmada_return_to_go_noise_keep_lr1e4_ema with three "
+                                                        "demonstration windows in four of each minibatch (ours: "
+                                                        "demos.ratio=0.75, 12 demonstration and 4 online rows)",
+                                                        "rgb+proprio",
+                                                        [*_RETURN_TO_GO_KEEP_LR1E4_EMA, "demos.ratio=0.75"], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper": ("mmada_return_to_go_noise_keep_lr1e4 with the demonstration "
                                                     "windows that start in the hold after a grasp drawn and scored on "
                                                     "the gripper alone (ours)", "rgb+proprio",
