@@ -16,6 +16,7 @@ _COMMANDS = (
     "mmada_rl.tokenizers.cli",
     "mmada_rl.quickstart",
     "mmada_rl.evaluation",
+    "mmada_rl.policy.cli",
 )
 
 

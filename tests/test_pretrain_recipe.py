@@ -65,6 +65,49 @@ def test_resume_continues_from_the_same_step_with_the_same_rng(toy_run, pick_dem
         torch.testing.assert_close(w_resumed[key], w_original[key], rtol=1e-5, atol=1e-6)
 
 
+def test_a_fork_continues_the_checkpoint_with_its_own_draws_and_forks_average_into_one_policy(toy_run, pick_demos,
+                                                                                              tmp_path):
+    fork = tmp_path / "fork"  # from the toy run's step 3, with seed 1's draws instead of the checkpoint's RNG
+    proc = run_recipe(f"run_dir={fork}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6",
+                      "checkpoint.interval=3", "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1",
+                      "eval.episodes=0", f"tokenizers.dir={toy_run / 'tokenizers'}", "seed=1",
+                      f"checkpoint.resume={toy_run / 'checkpoints' / 'step_00000003'}", "checkpoint.restore_rng=false")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "at step 3 with this run's seed 1 (a fork)" in proc.stdout
+    assert sorted(p.name for p in (fork / "checkpoints").iterdir()) == ["step_00000006"]  # its own run directory
+    history, original = (json.loads((run / "history.json").read_text()) for run in (fork, toy_run))
+    assert [h["step"] for h in history] == [1, 2, 3, 4, 5, 6]
+    assert [h["train/loss"] for h in history[:3]] == [h["train/loss"] for h in original[:3]]  # the checkpoint's rows
+    assert all(a["train/loss"] != b["train/loss"] for a, b in zip(history[3:], original[3:]))  # other batches and noise
+    base, forked = weights(toy_run / "checkpoints" / "step_00000006"), weights(fork / "checkpoints" / "step_00000006")
+    assert any(not torch.equal(base[key], forked[key]) for key in base)
+
+    # the two continuations averaged into one policy that evaluation loads
+    soup = tmp_path / "soup"
+    assert cli_main(["average", "--checkpoint", str(toy_run), str(fork), "--out", str(soup)]) == 0
+    members = json.loads((soup / "average.json").read_text())["members"]
+    assert members == [str(run / "checkpoints" / "step_00000006" / "model") for run in (toy_run, fork)]
+    policy = load_actor(soup).model
+    for key, value in policy.denoiser.state_dict().items():
+        if value.is_floating_point():
+            torch.testing.assert_close(value, (base[key] + forked[key]) / 2, rtol=1e-6, atol=1e-7)
+        else:
+            assert torch.equal(value, base[key])
+    out = tmp_path / "eval_soup"
+    assert cli_main(["eval", "--checkpoint", str(soup), "--task", "PickCube-v1", "--episodes", "1",
+                     "--max-episode-steps", "4", "--no-progress", "--out", str(out)]) == 0
+    assert json.loads((out / "eval.json").read_text())["per_episode"][0]["steps"] == 4
+
+    # policies read through other tokenizers, or one policy alone, are refused with a clear message
+    other = shutil.copytree(fork / "checkpoints" / "step_00000006" / "model", tmp_path / "other" / "model")
+    bins = next(p for p in sorted((other / "tokenizers").rglob("*")) if p.is_file())
+    bins.write_bytes(bins.read_bytes() + b" ")
+    with pytest.raises(SystemExit, match="was trained with other tokenizers than"):
+        cli_main(["average", "--checkpoint", str(toy_run), str(other), "--out", str(tmp_path / "bad")])
+    with pytest.raises(SystemExit, match="give two or more --checkpoint paths"):
+        cli_main(["average", "--checkpoint", str(toy_run), "--out", str(tmp_path / "bad")])
+
+
 def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(toy_run, pick_demos, tmp_path):
     common = [f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6", "checkpoint.interval=3",
               "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1", "ema.enabled=true"]

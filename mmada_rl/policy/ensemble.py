@@ -19,7 +19,11 @@ fine-tuned: sampled decoding and decoding-path log-probabilities raise.
 from __future__ import annotations
 
 import contextlib
+import copy
+import hashlib
+import json
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -28,9 +32,12 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from mmada_rl.diffusion.sampler import is_greedy
-from mmada_rl.policy.model import MMaDAModel, PolicyOutput
+from mmada_rl.policy.model import TOKENIZERS_DIR, MMaDAModel, PolicyOutput
 
-__all__ = ["MMaDAEnsemble", "average_chunks", "check_members"]
+__all__ = ["MMaDAEnsemble", "average_chunks", "average_weights", "check_members", "save_weight_average"]
+
+#: written beside a weight average's model: the policies averaged
+AVERAGE_FILE = "average.json"
 
 
 def check_members(members: Sequence, kind: type, properties: Mapping[str, Callable[[Any], Any]]) -> list:
@@ -163,3 +170,67 @@ class MMaDAEnsemble(nn.Module):
     def visual_input(self, td: TensorDictBase):
         raise NotImplementedError("an MMaDAEnsemble has no decoding-path likelihood: its chunk is an average, "
                                   "not a sample of one denoiser (fine-tune its members one by one).")
+
+
+def average_weights(members: Sequence[MMaDAModel]) -> MMaDAModel:
+    """One policy whose denoiser weights are the element-wise mean of ``members``' (a uniform model
+    soup, Wortsman et al., 2022): one set of weights and one decoding pass per chunk, where an
+    :class:`MMaDAEnsemble` runs every member.
+
+    It is meaningful for policies that share their start, such as forks of one pretraining run
+    (``checkpoint.resume=RUN/checkpoints/step_N checkpoint.restore_rng=false`` with a seed each); the
+    weights of independently initialised runs do not line up, and their mean is no policy at all.
+    The members must be alike in configuration, vocabulary and sequence layout (checked; their
+    tokenizers, which this cannot see, :func:`save_weight_average` checks file by file). Integer
+    buffers must agree and are kept.
+
+    Examples:
+        >>> soup = average_weights([MMaDAModel.load(d) for d in ["runs/fork_s1/model", "runs/fork_s2/model"]])  # doctest: +SKIP
+    """
+    members = check_members(members, MMaDAModel, {
+        "configuration": lambda m: asdict(m.config),
+        "action read-out": lambda m: m.action_readout,
+        "vocabulary": lambda m: m.vocab.to_dict(),
+        "sequence layout": lambda m: m.layout.to_dict(),
+    })  # fmt: skip
+    states = [m.denoiser.state_dict() for m in members]
+    averaged = {}
+    for key, value in states[0].items():
+        if value.is_floating_point():
+            averaged[key] = torch.stack([s[key].to(value.dtype) for s in states]).mean(0)
+        elif all(torch.equal(value, s[key]) for s in states[1:]):
+            averaged[key] = value
+        else:
+            raise ValueError(f"the members' {key} differ and cannot be averaged (an integer buffer).")
+    soup = copy.deepcopy(members[0])
+    soup.denoiser.load_state_dict(averaged)
+    return soup
+
+
+def _tokenizer_digest(model_dir: Path) -> str:
+    """A digest of every file under ``model_dir/tokenizers`` (names and bytes)."""
+    digest = hashlib.sha256()
+    root = model_dir / TOKENIZERS_DIR
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def save_weight_average(directories: Sequence[str | Path], out: str | Path) -> Path:
+    """:func:`average_weights` of the MMaDA-VLA policies saved in ``directories`` (run, checkpoint or
+    model directories), written as a policy to ``out`` (``mmada-rl eval --checkpoint OUT`` loads it),
+    with ``average.json`` naming the members. Their tokenizers must be the same files: a weight average
+    of denoisers that read different tokens is meaningless."""
+    from mmada_rl.evaluation import resolve_model_dir
+
+    model_dirs = [resolve_model_dir(d) for d in directories]
+    digests = [_tokenizer_digest(d) for d in model_dirs]
+    for d, digest in zip(model_dirs[1:], digests[1:]):
+        if digest != digests[0]:
+            raise ValueError(f"{d} was trained with other tokenizers than {model_dirs[0]}; a weight average needs "
+                             "policies that share their tokenizers (forks of one run, or runs given one tokenizers.dir).")
+    soup = average_weights([MMaDAModel.load(d) for d in model_dirs])
+    out = soup.save(out)
+    (out / AVERAGE_FILE).write_text(json.dumps({"members": [str(d) for d in model_dirs]}, indent=2))
+    return out

@@ -108,13 +108,16 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
 
 
 def resume_training(resume: bool | str | Path | None, run_dir: str | Path, *, load_weights, optimizer, scheduler=None,
-                    generators: dict[str, torch.Generator] | None = None) -> Checkpoint | None:
+                    generators: dict[str, torch.Generator] | None = None, restore_rng: bool = True) -> Checkpoint | None:
     """Restore weights, optimizer, scheduler and RNG states for ``checkpoint.resume``-style settings.
 
     Args:
         resume: falsy for a fresh run, ``True`` for the newest checkpoint in ``run_dir``, or a checkpoint path.
         load_weights: called with the checkpoint's model directory. It runs before the RNG
             states are restored, so building modules while loading does not shift them.
+        restore_rng: ``False`` keeps the RNG states (torch, numpy, python, ``generators``) as this run
+            seeded them: the run continues the checkpoint's training with its own draws (batches,
+            noise, augmentation), a fork of it rather than its exact continuation.
 
     Returns:
         the loaded :class:`Checkpoint` (``step`` is the step to continue from), or ``None`` for a fresh run.
@@ -129,7 +132,8 @@ def resume_training(resume: bool | str | Path | None, run_dir: str | Path, *, lo
     optimizer.load_state_dict(ckpt.trainer_state["optimizer"])
     if scheduler is not None and ckpt.trainer_state.get("scheduler") is not None:
         scheduler.load_state_dict(ckpt.trainer_state["scheduler"])
-    restore_rng_state(ckpt.trainer_state["rng"], generators)
+    if restore_rng:
+        restore_rng_state(ckpt.trainer_state["rng"], generators)
     return ckpt
 
 

@@ -3,6 +3,8 @@
     python recipes/pretrain/pretrain.py                          # toy: real PickCube-v1, about a minute
     python recipes/pretrain/pretrain.py --config-name maniskill  # 100 demos, small model
     python recipes/pretrain/pretrain.py checkpoint.resume=true   # continue the run in run_dir
+    python recipes/pretrain/pretrain.py checkpoint.resume=RUN/checkpoints/step_N checkpoint.restore_rng=false \
+        seed=1 run_dir=FORK                                      # a fork of RUN from step N, with its own draws
     python recipes/pretrain/pretrain.py --config-name multitask  # one model on PickCube, PushCube, StackCube
 
 Reads a demonstration buffer (collecting it first if missing) — or one per
@@ -105,14 +107,15 @@ def main(cfg: DictConfig) -> None:
         model.denoiser.load_state_dict(type(model).load(model_dir).denoiser.state_dict())
 
     ckpt = resume_training(cfg.checkpoint.resume, run_dir, load_weights=load_weights, optimizer=optimizer,
-                           scheduler=scheduler, generators=generators)
+                           scheduler=scheduler, generators=generators, restore_rng=bool(cfg.checkpoint.restore_rng))
     ema = make_weight_ema(model.denoiser, cfg.ema)  # after resume: a saved average is the loaded model
     if ckpt is not None:
         start = ckpt.step
         extra = ckpt.trainer_state.get("extra", {})
         resume_own_weights(model.denoiser, ema, extra)
         history = list(extra.get("history", []))  # the rows logged up to the checkpoint
-        print(f"[pretrain] resumed from {ckpt.path} at step {start}")
+        forked = "" if cfg.checkpoint.restore_rng else f" with this run's seed {cfg.seed} (a fork)"
+        print(f"[pretrain] resumed from {ckpt.path} at step {start}{forked}")
     params = sum(p.numel() for p in model.denoiser.parameters())
     demos = ", ".join(f"{b.metadata.task}: {b.metadata.num_episodes} demos, {len(b)} transitions" for b in buffers)
     print(f"[pretrain] {demos}; denoiser "
