@@ -33,6 +33,7 @@ __all__ = [
     "GOAL_IMAGE_KEY",
     "GOAL_IS_CLIPPED_KEY",
     "ACTION_GRIPPER_ONLY_KEY",
+    "TEACHER_CHUNK_KEY",
     "EPISODE_KEY",
     "STEP_KEY",
     "SUCCESS_KEY",
@@ -61,6 +62,10 @@ GOAL_IS_CLIPPED_KEY = ("goal", "is_clipped")
 #: True for a chunk window of which only the gripper's entries (the last of each action) are scored, bool ``[*B]``:
 #: a window that starts in the hold after a grasp (``grasp_hold_gripper_only`` of ``make_window_buffer``).
 ACTION_GRIPPER_ONLY_KEY = ("vla_action", "gripper_only")
+#: The chunk a teacher policy predicted from a stored transition's observation, float32 ``[*B, K, A]``: what a buffer
+#: relabelled by ``mmada-rl relabel`` stores beside the demonstrated action, and windows take with
+#: ``teacher_labels`` (:func:`~mmada_rl.data.make_window_buffer`) as their chunk.
+TEACHER_CHUNK_KEY = ("teacher", "chunk")
 #: Trajectory id of every stored transition (what ``SliceSampler(traj_key=...)`` reads).
 EPISODE_KEY = "episode"
 #: Index of the transition inside its episode, starting at 0.

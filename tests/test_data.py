@@ -593,3 +593,70 @@ def test_merged_buffer_holds_both_parts_episodes_and_their_provenance(pick_demos
         merge_buffers(tmp_path / "twice", [pick_demos, pick_demos])
     assert main(["merge", str(pick_demos), "--out", str(tmp_path / "one")]) == 2
     assert "two or more buffers" in capsys.readouterr().err
+
+
+def test_a_teacher_relabels_every_step_with_its_chunk_and_windows_train_on_it(pick_demos, toy_pretrain_run,
+                                                                              policy_rollouts, tmp_path, capsys):
+    """``mmada-rl relabel`` copies every episode and stores, for each step, the greedy chunk the teacher (here two
+    checkpoints as one ensemble) predicts from that step's observation; windows drawn with ``teacher_labels`` take
+    that chunk (the demonstrated one without), and the pretraining recipe trains a student on it. A buffer without
+    a teacher's labels, another chunk size, relabelling twice and merging relabelled buffers are refused."""
+    from mmada_rl.cli import main
+    from mmada_rl.data import every_window, merge_buffers, relabel_buffer
+    from mmada_rl.data.windows import step_ids
+    from mmada_rl.evaluation import resolve_model_dir
+    from mmada_rl.keys import EPISODE_KEY, STEP_KEY, TEACHER_CHUNK_KEY
+    from mmada_rl.policy import MMaDAEnsemble
+
+    teacher = [toy_pretrain_run / "checkpoints" / "step_00000003", toy_pretrain_run]
+    out = tmp_path / "relabelled"
+    assert main(["relabel", "--checkpoint", *map(str, teacher), "--demos", str(pick_demos), "--out", str(out),
+                 "--batch-size", "16"]) == 0
+    assert "teacher       " in capsys.readouterr().out
+    source, relabelled = DemoBuffer.open(pick_demos), DemoBuffer.open(out)
+    meta = relabelled.metadata
+    assert meta.teacher["checkpoints"] == list(map(str, teacher)) and meta.teacher["chunk_size"] == 5
+    assert meta.seeds == source.metadata.seeds and len(relabelled) == len(source)
+    for got, want in zip(relabelled.episodes(), source.episodes()):  # the demonstrations unchanged
+        assert torch.equal(got[ACTION_KEY], want[ACTION_KEY])
+        assert torch.equal(got["observation", "image"], want["observation", "image"])
+    stored = relabelled.storage[: len(relabelled)]
+    labels = stored.get(TEACHER_CHUNK_KEY)
+    assert labels.shape == (len(source), 5, 7)
+
+    ensemble = MMaDAEnsemble.load([resolve_model_dir(p) for p in teacher]).eval()
+    windows = list(every_window(source, 5, 16))
+    assert sum(w.shape[0] for w in windows) == len(source)
+    want = torch.cat([ensemble.act(w, greedy=True, decode_goal=False).chunk for w in windows])
+    torch.testing.assert_close(labels, want)  # each step's label: the teacher's chunk from its observation
+    errors = torch.cat([(c - w[ACTION_CHUNK_KEY]).abs()[~w[ACTION_IS_PAD_KEY]] for c, w in zip(want.split(16), windows)])
+    assert meta.teacher["chunk_mae"] == pytest.approx(float(errors.mean(0).mean()), rel=1e-5)
+    assert labels.sub(stored.get(ACTION_KEY).unsqueeze(1)).abs().amax() > 0  # not the demonstrated actions
+
+    ids = step_ids(stored.get(EPISODE_KEY).reshape(-1), stored.get(STEP_KEY).reshape(-1))  # sorted: storage order
+    for flag in (True, False):
+        batch = make_window_buffer(relabelled, 5, 32, seed=0, teacher_labels=flag).sample()
+        row = torch.searchsorted(ids, step_ids(batch[EPISODE_KEY].reshape(-1), batch[STEP_KEY].reshape(-1)))
+        assert TEACHER_CHUNK_KEY not in batch.keys(include_nested=True)
+        if flag:
+            assert torch.equal(batch[ACTION_CHUNK_KEY], labels[row])
+        else:
+            assert torch.equal(batch[ACTION_CHUNK_KEY][:, 0], stored.get(ACTION_KEY)[row])
+
+    with pytest.raises(ValueError, match="mmada-rl relabel --checkpoint TEACHER"):
+        make_window_buffer(source, 5, 8, teacher_labels=True)
+    with pytest.raises(ValueError, match="chunks of 5 actions, but chunk_size is 4"):
+        make_window_buffer(relabelled, 4, 8, teacher_labels=True)
+    with pytest.raises(ValueError, match="already relabelled"):
+        relabel_buffer(out, teacher, tmp_path / "twice", progress=False)
+    with pytest.raises(FileExistsError):
+        relabel_buffer(pick_demos, teacher, out, progress=False)
+    with pytest.raises(ValueError, match="hold a teacher's labels"):
+        merge_buffers(tmp_path / "merged", [out, policy_rollouts])
+
+    student = subprocess.run(
+        [sys.executable, "recipes/pretrain/pretrain.py", f"run_dir={tmp_path / 'student'}", f"data.dir={out}",
+         "data.collect_episodes=0", "data.teacher_labels=true", "optim.total_steps=2", "eval.episodes=0",
+         "num_threads=1"], cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=600)
+    assert student.returncode == 0, student.stderr[-3000:]
+    assert json.loads((tmp_path / "student" / "checkpoints" / "step_00000002" / "config.json").read_text())["data"]["teacher_labels"]

@@ -39,6 +39,7 @@ from mmada_rl.keys import (
     SEED_KEY,
     STATE_KEY,
     STEP_KEY,
+    TEACHER_CHUNK_KEY,
 )
 
 #: Keys every stored transition carries (beside ``episode``, ``instruction_id``, ``seed``).
@@ -180,7 +181,8 @@ class DemoBuffer:
 
     def transition_keys(self) -> tuple:
         image = IMAGE_KEYS if self.metadata.obs_mode == "rgb" else ()
-        return TRANSITION_KEYS + image
+        teacher = (TEACHER_CHUNK_KEY,) if self.metadata.teacher else ()
+        return TRANSITION_KEYS + image + teacher
 
     def add_episode(self, episode: TensorDictBase, *, seed: int, instruction: str) -> int:
         """Append one finished episode (batch ``[T]``, TorchRL rollout layout) and commit it to disk.
@@ -278,6 +280,10 @@ class DemoBuffer:
                          f"({100 * m.source_success_rate:.1f}%)")
         if m.checkpoint:
             lines.append(f"policy        {' + '.join(m.checkpoint)}")
+        if m.teacher:
+            lines.append(f"teacher       {' + '.join(m.teacher['checkpoints'])}: its {m.teacher['chunk_size']}-action chunk "
+                         f"for every step of {m.teacher['buffer']} (mean |error| {m.teacher['chunk_mae']:.4f} against "
+                         "the demonstrated chunks)")
         for part in m.parts:
             lines.append(f"part          {part['episodes']} episodes of {part['path']} ({part['source']})")
         if m.action_stats:
@@ -301,7 +307,7 @@ def merge_buffers(out: str | Path, parts: list[str | Path]) -> DemoBuffer:
     checkpoint``), for one pretraining run to read.
 
     Raises:
-        ValueError: fewer than two parts, or one given twice.
+        ValueError: fewer than two parts, one given twice, or a part relabelled by a teacher (its labels would be lost).
         BufferMismatchError: a part differs from the first in a checked field (both values named).
         FileExistsError: ``out`` already holds a buffer.
     """
@@ -317,6 +323,10 @@ def merge_buffers(out: str | Path, parts: list[str | Path]) -> DemoBuffer:
             if getattr(buf.metadata, name) != getattr(first, name):
                 raise BufferMismatchError(f"{buf.path} has {name}={getattr(buf.metadata, name)!r} but {paths[0]} has "
                                           f"{getattr(first, name)!r}; a merged buffer holds episodes of one setting.")
+    relabelled = [str(b.path) for b in buffers if b.metadata.teacher]
+    if relabelled:
+        raise ValueError(f"{', '.join(relabelled)} hold a teacher's labels, which a merged buffer would drop; merge the "
+                         "buffers they were relabelled from, then relabel the merged one.")
     sources = list(dict.fromkeys(b.metadata.source for b in buffers))
     meta = BufferMetadata(
         **{name: getattr(first, name) for name in MERGE_CHECKED},

@@ -83,6 +83,18 @@ def _run_merge(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_relabel(args: argparse.Namespace) -> int:
+    from mmada_rl.data.relabel import relabel_buffer
+
+    try:
+        relabelled = relabel_buffer(args.demos, args.checkpoint, args.out, batch_size=args.batch_size, device=args.device)
+    except (FileExistsError, FileNotFoundError, ValueError) as err:
+        print(f"mmada-rl relabel: error: {err}", file=sys.stderr)
+        return 2
+    print(relabelled.summary())
+    return 0
+
+
 def _run_info(args: argparse.Namespace) -> int:
     from mmada_rl.data.buffer import DemoBuffer
 
@@ -144,6 +156,22 @@ def add_parser(sub) -> None:
     p.add_argument("buffers", nargs="+", help="buffer directories, two or more")
     p.add_argument("--out", required=True, help="new buffer directory (must not hold a buffer)")
     p.set_defaults(func=_run_merge)
+
+    p = sub.add_parser(
+        "relabel",
+        help="copy a buffer with a teacher policy's predicted chunk stored for every step (to distil it)",
+        description="Write a new buffer holding every episode of --demos and, for each step, the action chunk the "
+        "teacher (--checkpoint: one policy, or several as one ensemble) predicts from that step's observation, "
+        "decoding greedily as it does in evaluation. A student trained on it with data.teacher_labels=true learns "
+        "the teacher's chunks on the demonstrations' own observations; no episode is added and nothing is simulated.",
+    )
+    p.add_argument("--checkpoint", nargs="+", required=True, metavar="PATH",
+                   help="the teacher's run, checkpoint or model directory; two or more act as one ensemble.")
+    p.add_argument("--demos", required=True, help="the buffer to relabel")
+    p.add_argument("--out", required=True, help="new buffer directory (must not hold a buffer)")
+    p.add_argument("--batch-size", type=int, default=64, help="observations decoded per forward pass (default: %(default)s).")
+    p.add_argument("--device", default="cpu", help="where the teacher runs (default: %(default)s).")
+    p.set_defaults(func=_run_relabel)
 
     p = sub.add_parser("info", help="print a buffer's summary", description="Print what a buffer directory holds.")
     p.add_argument("path", help="buffer directory")

@@ -60,6 +60,9 @@ class BufferMetadata:
         keep_after_success: planner episodes run past their first success to the
             end of the planner's path (else they end at the first success).
         action_noise: std of the noise planner episodes were executed with (DART; 0: none).
+        teacher: for a buffer relabelled by :func:`~mmada_rl.data.relabel_buffer`, the policy whose chunks it
+            stores under :data:`~mmada_rl.keys.TEACHER_CHUNK_KEY` (its ``checkpoints``, ``chunk_size``, how it
+            decoded, the buffer it relabelled and the chunks' error against the demonstrated ones); empty otherwise.
         capacity: number of transitions the storage was allocated for.
         instructions: instruction strings; transitions store an index into this list.
         num_episodes, num_transitions: committed content.
@@ -84,6 +87,7 @@ class BufferMetadata:
     action_noise: float = 0.0
     checkpoint: list[str] = field(default_factory=list)
     parts: list[dict] = field(default_factory=list)
+    teacher: dict = field(default_factory=dict)
     capacity: int = 0
     instructions: list[str] = field(default_factory=list)
     num_episodes: int = 0

@@ -46,8 +46,16 @@ With ``grasp_hold_gripper_only=True`` those windows are drawn after all, flagged
 gripper entries: the hold's arm labels still teach nothing, but its gripper labels
 are the only ones that say "keep the fingers closed" in the states just after a
 grasp, where a policy trained without them may open the gripper again.
+
+``teacher_labels=True`` takes each window's chunk from what a teacher policy
+predicted at its first step (:data:`~mmada_rl.keys.TEACHER_CHUNK_KEY`, stored by
+``mmada-rl relabel``) instead of the demonstrated actions ``t..t+K-1``: a student
+distilled from the teacher on the demonstrations' own observations. The window
+starts, pads, goal frame and every skip above still follow the demonstration.
 """
 from __future__ import annotations
+
+from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDictBase
@@ -66,6 +74,7 @@ from mmada_rl.keys import (
     STATE_KEY,
     STEP_KEY,
     TASK_INDEX_KEY,
+    TEACHER_CHUNK_KEY,
 )
 
 class ChunkWindowSampler(SliceSampler):
@@ -151,14 +160,19 @@ class ChunkWindowTransform(Transform):
         with_images: also build the goal image (False for state-only buffers).
         gripper_only_starts: :func:`step_ids` of the steps whose windows score only the gripper; given, every
             sample gets :data:`~mmada_rl.keys.ACTION_GRIPPER_ONLY_KEY` (True where its window starts at one).
+        teacher_labels: the chunk is the teacher's, stored with the window's first transition
+            (:data:`~mmada_rl.keys.TEACHER_CHUNK_KEY`), not the demonstrated actions; the pad flags stay the
+            demonstration's, so steps past the episode end are left unscored either way.
     """
 
-    def __init__(self, chunk_size: int, *, with_images: bool = True, gripper_only_starts: torch.Tensor | None = None):
+    def __init__(self, chunk_size: int, *, with_images: bool = True, gripper_only_starts: torch.Tensor | None = None,
+                 teacher_labels: bool = False):
         out_keys = [ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, GOAL_IMAGE_KEY, GOAL_IS_CLIPPED_KEY]
         super().__init__(in_keys=[], out_keys=out_keys + ([ACTION_GRIPPER_ONLY_KEY] if gripper_only_starts is not None else []))
         self.chunk_size = chunk_size
         self.with_images = with_images
         self.gripper_only_starts = gripper_only_starts
+        self.teacher_labels = teacher_labels
         self._chunker = ActionChunkTransform(chunk_size, done_key="done")
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -171,8 +185,12 @@ class ChunkWindowTransform(Transform):
         episode = windows.get(EPISODE_KEY)
         offsets = torch.arange(K + 1, device=step.device)
         valid = (step == step[:, :1] + offsets) & (episode == episode[:, :1])  # (N, K+1)
-        out = windows[:, 0].exclude("next")
-        out.set(ACTION_CHUNK_KEY, chunked.get(ACTION_CHUNK_KEY)[:, 0])  # (N, K, A)
+        first = windows[:, 0]
+        out = first.exclude("next", TEACHER_CHUNK_KEY[0])
+        if self.teacher_labels:
+            out.set(ACTION_CHUNK_KEY, first.get(TEACHER_CHUNK_KEY).to(torch.float32))  # (N, K, A)
+        else:
+            out.set(ACTION_CHUNK_KEY, chunked.get(ACTION_CHUNK_KEY)[:, 0])  # (N, K, A)
         out.set(ACTION_IS_PAD_KEY, ~valid[:, :K])  # (N, K)
         if self.with_images:
             last = windows[:, K]
@@ -249,7 +267,8 @@ def grasp_holds(buffer, lift: float) -> torch.Tensor:
 
 
 #: The window options of :func:`make_window_buffer` and :class:`MultiTaskWindows`, each with its "off" value.
-WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0, "grasp_hold_gripper_only": False}
+WINDOW_SKIPS = {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0, "grasp_hold_gripper_only": False,
+                "teacher_labels": False}
 
 
 def window_skips(options) -> dict:
@@ -276,9 +295,39 @@ def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float 
     return torch.stack(masks).any(0)
 
 
+def every_window(buffer, chunk_size: int, batch_size: int) -> Iterator[TensorDictBase]:
+    """The chunk window of every stored step of ``buffer``, in storage order, ``batch_size`` windows at a time
+    (the last batch smaller): the samples :func:`make_window_buffer` draws, each step once, none skipped."""
+    from mmada_rl.data.buffer import InstructionLookup
+
+    if chunk_size < 1 or batch_size < 1:
+        raise ValueError(f"chunk_size and batch_size must be >= 1, got {chunk_size} and {batch_size}.")
+    transform = Compose(ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
+                        InstructionLookup(buffer.metadata.instructions))
+    index = torch.cat([start + (torch.arange(stop - start).unsqueeze(-1) + torch.arange(chunk_size + 1)).clamp(max=stop - start - 1)
+                       for start, stop in buffer.episode_bounds()])  # (steps, K+1): each step's window, clipped at its end
+    for rows in index.split(batch_size):
+        yield transform(buffer.storage[rows.reshape(-1)])
+
+
+def check_teacher_labels(buffer, chunk_size: int, teacher_labels: bool) -> None:
+    """Raise a ``ValueError`` unless ``buffer`` holds a teacher's ``chunk_size``-action chunks where
+    ``teacher_labels`` asks for them."""
+    if not teacher_labels:
+        return
+    teacher = buffer.metadata.teacher
+    if not teacher:
+        raise ValueError(f"teacher_labels trains on a teacher's chunks, which {buffer.path} does not hold; write a "
+                         f"relabelled copy first: mmada-rl relabel --checkpoint TEACHER --demos {buffer.path} --out DIR.")
+    if int(teacher["chunk_size"]) != chunk_size:
+        raise ValueError(f"{buffer.path} holds a teacher's chunks of {teacher['chunk_size']} actions, but chunk_size is "
+                         f"{chunk_size}; relabel with a teacher of chunk size {chunk_size}.")
+
+
 def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed: int | None = None,
                        skip_idle_start: bool = False, skip_pauses: float = 0.0,
-                       skip_grasp_hold: float = 0.0, grasp_hold_gripper_only: bool = False) -> ReplayBuffer:
+                       skip_grasp_hold: float = 0.0, grasp_hold_gripper_only: bool = False,
+                       teacher_labels: bool = False) -> ReplayBuffer:
     """A replay buffer over ``buffer``'s storage that samples ``batch_size`` chunk windows.
 
     Args:
@@ -297,6 +346,9 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
         grasp_hold_gripper_only: draw the windows ``skip_grasp_hold`` finds after all, each flagged
             (:data:`~mmada_rl.keys.ACTION_GRIPPER_ONLY_KEY`) so that only its gripper entries are scored; every
             sample then carries the flag. Needs ``skip_grasp_hold > 0``.
+        teacher_labels: each window's chunk is the one a teacher predicted at its first step, stored in a
+            buffer relabelled by ``mmada-rl relabel`` (:func:`~mmada_rl.data.relabel_buffer`), instead of the
+            demonstrated actions; the teacher's chunk size must be ``chunk_size``.
 
     Examples:
         >>> rb = make_window_buffer(DemoBuffer.open("data/pickcube"), chunk_size=5, batch_size=32)  # doctest: +SKIP
@@ -314,6 +366,7 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
             f"chunk_size={chunk_size} is longer than every episode in {buffer.path} "
             f"(longest: {max(lengths)} steps); use a chunk_size <= {max(lengths)}."
         )
+    check_teacher_labels(buffer, chunk_size, teacher_labels)
     gripper_only = None
     if grasp_hold_gripper_only:
         if not skip_grasp_hold > 0:
@@ -326,7 +379,8 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
                               skip_grasp_hold=0.0 if grasp_hold_gripper_only else skip_grasp_hold)
     sampler = ChunkWindowSampler(chunk_size, no_start=no_start)
     transform = Compose(
-        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb", gripper_only_starts=gripper_only),
+        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb", gripper_only_starts=gripper_only,
+                             teacher_labels=teacher_labels),
         InstructionLookup(buffer.metadata.instructions),
     )
     # a plain ReplayBuffer: TensorDictReplayBuffer would write the flat per-transition
@@ -418,8 +472,8 @@ class MultiTaskWindows:
             (proportional to stored transitions, as one merged buffer would be)
             or one non-negative weight per buffer.
         seed: seeds the task draw and every member's sampler.
-        skip_idle_start, skip_pauses, skip_grasp_hold, grasp_hold_gripper_only: as for :func:`make_window_buffer`,
-            in every buffer.
+        skip_idle_start, skip_pauses, skip_grasp_hold, grasp_hold_gripper_only, teacher_labels: as for
+            :func:`make_window_buffer`, in every buffer.
 
     Examples:
         >>> windows = MultiTaskWindows([pick, push], chunk_size=5, batch_size=16)  # doctest: +SKIP
@@ -429,7 +483,7 @@ class MultiTaskWindows:
 
     def __init__(self, buffers, chunk_size: int, batch_size: int, *, weights="uniform", seed: int | None = None,
                  skip_idle_start: bool = False, skip_pauses: float = 0.0, skip_grasp_hold: float = 0.0,
-                 grasp_hold_gripper_only: bool = False):
+                 grasp_hold_gripper_only: bool = False, teacher_labels: bool = False):
         buffers = list(buffers)
         if not buffers:
             raise ValueError("MultiTaskWindows needs at least one buffer.")
@@ -447,7 +501,8 @@ class MultiTaskWindows:
         self.members = [
             make_window_buffer(b, chunk_size, None, seed=None if seed is None else seed + 1 + i,
                                skip_idle_start=skip_idle_start, skip_pauses=skip_pauses,
-                               skip_grasp_hold=skip_grasp_hold, grasp_hold_gripper_only=grasp_hold_gripper_only)
+                               skip_grasp_hold=skip_grasp_hold, grasp_hold_gripper_only=grasp_hold_gripper_only,
+                               teacher_labels=teacher_labels)
             for i, b in enumerate(buffers)
         ]
         self._rng = torch.Generator().manual_seed(seed) if seed is not None else torch.Generator()

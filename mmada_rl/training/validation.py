@@ -11,7 +11,7 @@ cross-entropy there rises (docs/results/pretraining.md, "Why PickCube-v1 fails")
   (and goal) tokens with the targets masked at one fixed ratio (1.0: what the
   first of the N decoding steps sees).
 * :func:`chunk_error` — the mean absolute error per action dimension of the
-  chunks a policy predicts (an :class:`~mmada_rl.policy.MMaDAModel` decoded
+  chunks a policy predicts (:func:`predicted_chunks`: an :class:`~mmada_rl.policy.MMaDAModel` decoded
   greedily, or any chunk policy such as the BC baseline, as it acts) against the
   demonstrated chunks, in the environment's action units.
 
@@ -29,7 +29,7 @@ from mmada_rl.data import DemoBuffer, make_window_buffer
 from mmada_rl.diffusion.schedules import UniformNoiseSchedule
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY
 
-__all__ = ["chunk_error", "fixed_windows", "masked_token_scores", "validation_metrics"]
+__all__ = ["chunk_error", "fixed_windows", "masked_token_scores", "predicted_chunks", "validation_metrics"]
 
 
 def fixed_windows(demos: DemoBuffer | str | Path, chunk_size: int, minibatches: int, batch_size: int,
@@ -64,18 +64,25 @@ def masked_token_scores(model, batches: list[TensorDictBase], ratio: float = 1.0
 
 
 @torch.no_grad()
-def chunk_error(policy, batches: list[TensorDictBase]) -> list[float]:
-    """Mean absolute error per action dimension of ``policy``'s chunks against the demonstrated ones (padded
-    steps left out): an :class:`~mmada_rl.policy.MMaDAModel` decoded greedily, or a chunk policy (BC,
-    Diffusion Policy) called on a copy of each batch (it writes its chunk where the window holds the demonstrated one)."""
-    from mmada_rl.policy import MMaDAModel
+def predicted_chunks(policy, batch: TensorDictBase) -> torch.Tensor:
+    """The chunks ``[B, K, A]`` ``policy`` predicts for a batch of windows: an :class:`~mmada_rl.policy.MMaDAModel`
+    or :class:`~mmada_rl.policy.MMaDAEnsemble` decoded greedily (its own N and read-out), or a chunk policy (BC,
+    Diffusion Policy, their ensembles) called on a copy of the batch (it writes its chunk where the window holds
+    the demonstrated one)."""
+    from mmada_rl.policy import MMaDAEnsemble, MMaDAModel
 
+    if isinstance(policy, (MMaDAModel, MMaDAEnsemble)):
+        return policy.act(batch, greedy=True, decode_goal=False).chunk
+    return policy(batch.clone()).get(ACTION_CHUNK_KEY)
+
+
+@torch.no_grad()
+def chunk_error(policy, batches: list[TensorDictBase]) -> list[float]:
+    """Mean absolute error per action dimension of ``policy``'s chunks (:func:`predicted_chunks`) against the
+    demonstrated ones, padded steps left out."""
     errors = []
     for batch in batches:
-        if isinstance(policy, MMaDAModel):
-            chunk = policy.act(batch, greedy=True, decode_goal=False).chunk  # (B, K, A)
-        else:
-            chunk = policy(batch.clone()).get(ACTION_CHUNK_KEY)  # (B, K, A)
+        chunk = predicted_chunks(policy, batch)  # (B, K, A)
         real = ~batch.get(ACTION_IS_PAD_KEY).bool().to(chunk.device)  # (B, K)
         errors.append((chunk - batch.get(ACTION_CHUNK_KEY).to(chunk.device)).abs()[real])  # (M, A)
     return torch.cat(errors).mean(0).tolist()
