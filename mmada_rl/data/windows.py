@@ -304,8 +304,9 @@ def every_window(buffer, chunk_size: int, batch_size: int) -> Iterator[TensorDic
         raise ValueError(f"chunk_size and batch_size must be >= 1, got {chunk_size} and {batch_size}.")
     transform = Compose(ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
                         InstructionLookup(buffer.metadata.instructions))
-    index = torch.cat([start + (torch.arange(stop - start).unsqueeze(-1) + torch.arange(chunk_size + 1)).clamp(max=stop - start - 1)
-                       for start, stop in buffer.episode_bounds()])  # (steps, K+1): each step's window, clipped at its end
+    offsets = torch.arange(chunk_size + 1)
+    index = torch.cat([start + (torch.arange(stop - start).unsqueeze(-1) + offsets).clamp(max=stop - start - 1)
+                       for start, stop in buffer.episode_bounds()])  # (steps, K+1): each step's window, held at its end
     for rows in index.split(batch_size):
         yield transform(buffer.storage[rows.reshape(-1)])
 
