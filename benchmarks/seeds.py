@@ -36,11 +36,16 @@ from common import RESULTS, markdown_table, save_figure, write_results  # noqa: 
 from pretraining import read_evaluations  # noqa: E402
 
 from mmada_rl.evaluation import ENSEMBLE_CHECKPOINT_SEPARATOR, wilson_interval  # noqa: E402
+from mmada_rl.policy.ensemble import AVERAGE_FILE  # noqa: E402
 
 
-def _run_seed(path: Path) -> int | None:
+def _run_seed(path: Path) -> int | str | None:
     """The training ``seed`` of a run directory (its newest checkpoint's config), a checkpoint, or a
-    checkpoint's ``model/`` directory (``None`` when none of them says)."""
+    checkpoint's ``model/`` directory (``None`` when none of them says); for a weight average written by
+    ``mmada-rl average``, its members' seeds, e.g. ``"0+1+2 averaged"``."""
+    if (path / AVERAGE_FILE).is_file():
+        seeds = [_run_seed(Path(member)) for member in json.loads((path / AVERAGE_FILE).read_text())["members"]]
+        return None if None in seeds else "+".join(str(seed) for seed in seeds) + " averaged"
     for candidate in (path, path.parent):
         configs = sorted((candidate / "checkpoints").glob("step_*/config.json")) or [candidate / "config.json"]
         if configs[-1].is_file():

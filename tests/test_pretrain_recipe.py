@@ -97,6 +97,9 @@ def test_a_fork_continues_the_checkpoint_with_its_own_draws_and_forks_average_in
     assert cli_main(["eval", "--checkpoint", str(soup), "--task", "PickCube-v1", "--episodes", "1",
                      "--max-episode-steps", "4", "--no-progress", "--out", str(out)]) == 0
     assert json.loads((out / "eval.json").read_text())["per_episode"][0]["steps"] == 4
+    seeds = load_script("benchmarks/seeds.py")  # the seeds report names the members' training seeds
+    assert seeds.main(["--group", "soup", str(out / "eval.json"), "--name", "soup", "--out", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "soup.json").read_text())["groups"][0]["seeds"][0]["seed"] == "0+1 averaged"
 
     # policies read through other tokenizers, or one policy alone, are refused with a clear message
     other = shutil.copytree(fork / "checkpoints" / "step_00000006" / "model", tmp_path / "other" / "model")

@@ -40,18 +40,20 @@ __all__ = ["MMaDAEnsemble", "average_chunks", "average_weights", "check_members"
 AVERAGE_FILE = "average.json"
 
 
-def check_members(members: Sequence, kind: type, properties: Mapping[str, Callable[[Any], Any]]) -> list:
+def check_members(members: Sequence, kind: type, properties: Mapping[str, Callable[[Any], Any]],
+                  what: str = "an ensemble") -> list:
     """``members`` as a list, checked to be two or more ``kind`` instances that agree with the first
     on every one of ``properties`` (a name and how to read it); otherwise a ``ValueError`` naming
-    the first difference."""
+    the first difference and ``what`` the members make (e.g. ``"a weight average"``)."""
     members = list(members)
     if len(members) < 2 or not all(isinstance(m, kind) for m in members):
-        raise ValueError(f"an ensemble needs two or more {kind.__name__} members, got {[type(m).__name__ for m in members]}.")
+        raise ValueError(f"{what} needs two or more {kind.__name__} members, got {[type(m).__name__ for m in members]}.")
     for i, other in enumerate(members[1:], start=1):
-        for what, read in properties.items():
+        for name, read in properties.items():
             mine, theirs = read(members[0]), read(other)
             if mine != theirs:
-                raise ValueError(f"ensemble members must act alike: member 0 has {what} {mine!r}, member {i} {theirs!r}.")
+                raise ValueError(f"the members of {what} must be alike: member 0 has {name} {mine!r}, member {i} "
+                                 f"{theirs!r}.")
     return members
 
 
@@ -192,7 +194,7 @@ def average_weights(members: Sequence[MMaDAModel]) -> MMaDAModel:
         "action read-out": lambda m: m.action_readout,
         "vocabulary": lambda m: m.vocab.to_dict(),
         "sequence layout": lambda m: m.layout.to_dict(),
-    })  # fmt: skip
+    }, what="a weight average")  # fmt: skip
     states = [m.denoiser.state_dict() for m in members]
     averaged = {}
     for key, value in states[0].items():
