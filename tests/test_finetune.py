@@ -640,15 +640,15 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
     cfg = OmegaConf.create({"seed": 0, "pretrained": str(checkpoint), "demos": {"ratio": 1.0, "skip_idle_start": None,
                             "skip_pauses": None, "skip_grasp_hold": None}, "replay_buffer": {"batch_size": 8}})
     assert utils.demo_window_skips(cfg) == {"skip_idle_start": True, "skip_pauses": 0.01, "skip_grasp_hold": 0.05,
-                                            "grasp_hold_gripper_only": False}
+                                            "grasp_hold_gripper_only": False, "teacher_labels": False}
     overridden = OmegaConf.merge(cfg, {"demos": {"skip_pauses": 0.0}})
     assert utils.demo_window_skips(overridden) == {"skip_idle_start": True, "skip_pauses": 0.0, "skip_grasp_hold": 0.05,
-                                                   "grasp_hold_gripper_only": False}
+                                                   "grasp_hold_gripper_only": False, "teacher_labels": False}
     (tmp_path / "saved").mkdir()  # a model saved on its own, without a run's config beside it
     (tmp_path / "saved" / "policy").symlink_to(utils.resolve_model_dir(toy_pretrain_run))
     bare = OmegaConf.merge(cfg, {"pretrained": str(tmp_path / "saved" / "policy")})
     assert utils.demo_window_skips(bare) == {"skip_idle_start": False, "skip_pauses": 0.0, "skip_grasp_hold": 0.0,
-                                             "grasp_hold_gripper_only": False}
+                                             "grasp_hold_gripper_only": False, "teacher_labels": False}
     assert utils.demo_window_skips(OmegaConf.merge(cfg, {"pretrained": str(toy_pretrain_run)})) == utils.WINDOW_SKIPS
 
     demos = DemoBuffer.open(pick_demos)
@@ -662,6 +662,12 @@ def test_demo_windows_skip_what_the_pretraining_run_skipped(toy_pretrain_run, mo
     assert utils.demo_window_skips(gripper_only)["grasp_hold_gripper_only"] is True
     with pytest.raises(ValueError, match=r"grasp_hold_gripper_only .* needs ordered bin tokens"):
         utils.make_demo_windows(gripper_only, demos, model)
+    # a student distilled on a teacher's labels keeps them; demonstrations without them are refused
+    (checkpoint / "config.json").write_text(json.dumps({"data": {"teacher_labels": True}}))
+    assert utils.demo_window_skips(cfg)["teacher_labels"] is True
+    with pytest.raises(ValueError, match="does not hold; write a relabelled copy first: mmada-rl relabel"):
+        utils.make_demo_windows(cfg, demos, model)
+    assert utils.demo_window_skips(OmegaConf.merge(cfg, {"demos": {"teacher_labels": False}}))["teacher_labels"] is False
 
 
 def test_mixed_batches_flag_the_gripper_only_demo_windows_and_no_online_row(model, pick_demos):
