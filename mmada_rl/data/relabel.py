@@ -22,8 +22,9 @@ import torch
 from tqdm.auto import tqdm
 
 from mmada_rl.data.buffer import DemoBuffer
+from mmada_rl.data.metadata import METADATA_FILE, BufferMetadata
 from mmada_rl.data.windows import every_window
-from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, INSTRUCTION_ID_KEY, TEACHER_CHUNK_KEY
+from mmada_rl.keys import INSTRUCTION_ID_KEY, TEACHER_CHUNK_KEY
 
 __all__ = ["relabel_buffer"]
 
@@ -47,44 +48,38 @@ def relabel_buffer(demos: str | Path, checkpoints: Sequence[str | Path], out: st
         left out).
 
     Raises:
-        ValueError: ``demos`` already holds a teacher's labels, or the teacher reads another camera or image size.
+        ValueError: ``demos`` already holds a teacher's labels.
+        BufferMismatchError: the teacher reads another observation mode, image size or camera than ``demos`` holds.
         FileExistsError: ``out`` already holds a buffer.
     """
     from mmada_rl.evaluation import eval_env_config, load_actor
     from mmada_rl.policy import MMaDAActor
-    from mmada_rl.training.validation import predicted_chunks
+    from mmada_rl.training.validation import chunk_abs_errors, predicted_chunks
 
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}.")
-    source = DemoBuffer.open(demos)
-    if source.metadata.teacher:
-        raise ValueError(f"{source.path} is already relabelled by {source.metadata.teacher['checkpoints']}; "
-                         f"relabel the buffer it was made from ({source.metadata.teacher['buffer']}).")
-    if (Path(out) / "metadata.json").exists():
+    if (Path(out) / METADATA_FILE).exists():  # DemoBuffer.create would refuse it too, after the decoding
         raise FileExistsError(f"{out} already holds a buffer; give a new directory.")
     checkpoints = [str(c) for c in checkpoints]
     if not checkpoints:
         raise ValueError("a teacher needs at least one policy directory (--checkpoint PATH).")
     actor = load_actor(checkpoints, device)
     policy = actor.model if isinstance(actor, MMaDAActor) else actor
+    sees = eval_env_config(actor, BufferMetadata.load(demos).task)  # what the teacher reads, checked on opening
+    source = DemoBuffer.open(demos, obs_mode=sees.obs_mode, image_size=sees.image_size, camera_fov=sees.camera_fov)
     meta = source.metadata
-    wanted = eval_env_config(actor, meta.task)
-    for name in ("obs_mode", "image_size", "camera_fov"):
-        if getattr(wanted, name) != getattr(meta, name):
-            raise ValueError(f"the teacher {', '.join(checkpoints)} reads {name}={getattr(wanted, name)!r} but "
-                             f"{source.path} holds {getattr(meta, name)!r}; relabel a buffer recorded as the teacher sees.")
+    if meta.teacher:
+        raise ValueError(f"{source.path} is already relabelled by {meta.teacher['checkpoints']}; "
+                         f"relabel the buffer it was made from ({meta.teacher['buffer']}).")
     chunk_size = int(policy.config.chunk_size)
 
     chunks, errors = [], []
-    batches = every_window(source, chunk_size, batch_size)
     bar = tqdm(total=len(source), desc=f"relabel {meta.task}", unit="step", disable=not progress)
-    with torch.no_grad():
-        for batch in batches:
-            chunk = predicted_chunks(policy, batch.to(device)).float().cpu()  # (B, K, A)
-            real = ~batch.get(ACTION_IS_PAD_KEY).bool()  # (B, K)
-            errors.append((chunk - batch.get(ACTION_CHUNK_KEY).float()).abs()[real])  # (M, A)
-            chunks.append(chunk)
-            bar.update(chunk.shape[0])
+    for batch in every_window(source, chunk_size, batch_size):
+        chunk = predicted_chunks(policy, batch.to(device)).float().cpu()  # (B, K, A)
+        errors.append(chunk_abs_errors(chunk, batch))  # (M, A)
+        chunks.append(chunk)
+        bar.update(chunk.shape[0])
     bar.close()
     chunks = torch.cat(chunks)  # (steps, K, A), storage order
     mae = torch.cat(errors).mean(0)

@@ -178,7 +178,6 @@ class ChunkWindowTransform(Transform):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         K = self.chunk_size
         windows = tensordict.reshape(-1, K + 1)  # (N, K+1)
-        chunked = self._chunker(windows.select("action", ("next", "done")).clone())
         # a position is real when it is the next step of the same episode; past the
         # end the sampler repeats the last transition, whose step count then stalls
         step = windows.get(STEP_KEY).reshape(windows.shape)  # (N, K+1)
@@ -190,6 +189,7 @@ class ChunkWindowTransform(Transform):
         if self.teacher_labels:
             out.set(ACTION_CHUNK_KEY, first.get(TEACHER_CHUNK_KEY).to(torch.float32))  # (N, K, A)
         else:
+            chunked = self._chunker(windows.select("action", ("next", "done")).clone())
             out.set(ACTION_CHUNK_KEY, chunked.get(ACTION_CHUNK_KEY)[:, 0])  # (N, K, A)
         out.set(ACTION_IS_PAD_KEY, ~valid[:, :K])  # (N, K)
         if self.with_images:
@@ -298,17 +298,27 @@ def no_start_steps(buffer, *, skip_idle_start: bool = False, skip_pauses: float 
 def every_window(buffer, chunk_size: int, batch_size: int) -> Iterator[TensorDictBase]:
     """The chunk window of every stored step of ``buffer``, in storage order, ``batch_size`` windows at a time
     (the last batch smaller): the samples :func:`make_window_buffer` draws, each step once, none skipped."""
-    from mmada_rl.data.buffer import InstructionLookup
-
     if chunk_size < 1 or batch_size < 1:
         raise ValueError(f"chunk_size and batch_size must be >= 1, got {chunk_size} and {batch_size}.")
-    transform = Compose(ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb"),
-                        InstructionLookup(buffer.metadata.instructions))
+    transform = window_transform(buffer, chunk_size)
     offsets = torch.arange(chunk_size + 1)
     index = torch.cat([start + (torch.arange(stop - start).unsqueeze(-1) + offsets).clamp(max=stop - start - 1)
                        for start, stop in buffer.episode_bounds()])  # (steps, K+1): each step's window, held at its end
     for rows in index.split(batch_size):
         yield transform(buffer.storage[rows.reshape(-1)])
+
+
+def window_transform(buffer, chunk_size: int, *, gripper_only_starts: torch.Tensor | None = None,
+                     teacher_labels: bool = False) -> Compose:
+    """What turns ``buffer``'s flat ``K + 1``-transition windows into samples: :class:`ChunkWindowTransform`
+    (its options as given), then the instruction text put back."""
+    from mmada_rl.data.buffer import InstructionLookup
+
+    return Compose(
+        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb",
+                             gripper_only_starts=gripper_only_starts, teacher_labels=teacher_labels),
+        InstructionLookup(buffer.metadata.instructions),
+    )
 
 
 def check_teacher_labels(buffer, chunk_size: int, teacher_labels: bool) -> None:
@@ -357,8 +367,6 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
         >>> batch["vla_action", "chunk"].shape, batch["goal", "image"].shape  # doctest: +SKIP
         (torch.Size([32, 5, 7]), torch.Size([32, 3, 64, 64]))
     """
-    from mmada_rl.data.buffer import InstructionLookup
-
     lengths = [b - a for a, b in buffer.episode_bounds()]
     if not lengths:
         raise ValueError(f"buffer {buffer.path} is empty.")
@@ -379,11 +387,7 @@ def make_window_buffer(buffer, chunk_size: int, batch_size: int | None, *, seed:
     no_start = no_start_steps(buffer, skip_idle_start=skip_idle_start, skip_pauses=skip_pauses,
                               skip_grasp_hold=0.0 if grasp_hold_gripper_only else skip_grasp_hold)
     sampler = ChunkWindowSampler(chunk_size, no_start=no_start)
-    transform = Compose(
-        ChunkWindowTransform(chunk_size, with_images=buffer.metadata.obs_mode == "rgb", gripper_only_starts=gripper_only,
-                             teacher_labels=teacher_labels),
-        InstructionLookup(buffer.metadata.instructions),
-    )
+    transform = window_transform(buffer, chunk_size, gripper_only_starts=gripper_only, teacher_labels=teacher_labels)
     # a plain ReplayBuffer: TensorDictReplayBuffer would write the flat per-transition
     # sample indices back into the (already windowed) output and fail on the shape
     return ReplayBuffer(

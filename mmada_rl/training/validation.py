@@ -29,7 +29,7 @@ from mmada_rl.data import DemoBuffer, make_window_buffer
 from mmada_rl.diffusion.schedules import UniformNoiseSchedule
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY
 
-__all__ = ["chunk_error", "fixed_windows", "masked_token_scores", "predicted_chunks", "validation_metrics"]
+__all__ = ["chunk_abs_errors", "chunk_error", "fixed_windows", "masked_token_scores", "predicted_chunks", "validation_metrics"]
 
 
 def fixed_windows(demos: DemoBuffer | str | Path, chunk_size: int, minibatches: int, batch_size: int,
@@ -76,15 +76,18 @@ def predicted_chunks(policy, batch: TensorDictBase) -> torch.Tensor:
     return policy(batch.clone()).get(ACTION_CHUNK_KEY)
 
 
+def chunk_abs_errors(chunk: torch.Tensor, batch: TensorDictBase) -> torch.Tensor:
+    """The absolute errors ``[M, A]`` of predicted chunks ``[B, K, A]`` against the windows' demonstrated chunks
+    at their ``M`` real (not padded) steps."""
+    real = ~batch.get(ACTION_IS_PAD_KEY).bool().to(chunk.device)  # (B, K)
+    return (chunk - batch.get(ACTION_CHUNK_KEY).to(chunk)).abs()[real]
+
+
 @torch.no_grad()
 def chunk_error(policy, batches: list[TensorDictBase]) -> list[float]:
     """Mean absolute error per action dimension of ``policy``'s chunks (:func:`predicted_chunks`) against the
-    demonstrated ones, padded steps left out."""
-    errors = []
-    for batch in batches:
-        chunk = predicted_chunks(policy, batch)  # (B, K, A)
-        real = ~batch.get(ACTION_IS_PAD_KEY).bool().to(chunk.device)  # (B, K)
-        errors.append((chunk - batch.get(ACTION_CHUNK_KEY).to(chunk.device)).abs()[real])  # (M, A)
+    demonstrated ones, padded steps left out (:func:`chunk_abs_errors`)."""
+    errors = [chunk_abs_errors(predicted_chunks(policy, batch), batch) for batch in batches]
     return torch.cat(errors).mean(0).tolist()
 
 
