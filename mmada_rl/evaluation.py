@@ -15,7 +15,8 @@ step) and ``success_at_end`` (success at the last step) are measured; decoding
 is greedy (``ExplorationType.DETERMINISTIC``); rates come with 95% Wilson score
 intervals. Fine-tuning's two exploration policies can be measured the same way:
 tokens sampled at a temperature (``--sample-temperature``) or the greedy chunks
-executed with Gaussian noise on the arm's actions (``--action-noise``).
+executed with Gaussian noise on the arm's actions (``--action-noise``); so can
+an RL baseline's, its actions sampled from the actor (``--sample-actions``).
 
 Seeds: episode ``i`` is reset with seed ``EVAL_SEED_BASE + seed_offset + i``
 (``EVAL_SEED_BASE = 1_000_000``). Demonstrations and training envs use seeds
@@ -51,6 +52,7 @@ from mmada_rl.baselines import (
     POLICY_CONFIG,
     ChunkPolicy,
     ChunkPolicyEnsemble,
+    OneStepChunkActor,
     is_policy_dir,
     is_rl_agent_dir,
     load_policy,
@@ -188,6 +190,7 @@ class EvalResult:
     files: list[str] = field(default_factory=list)
     sample_temperature: float = 0.0  # 0: greedy decoding; > 0: tokens sampled at this temperature
     action_noise: float = 0.0  # > 0: greedy chunks executed with N(0, action_noise^2) on the arm's actions
+    sample_actions: bool = False  # an RL baseline's actions sampled from its distribution, not its mean
     action_readout: str | None = None  # MMaDA-VLA: "token" or "mean" (MMaDAConfig.action_readout); None for baselines
     checkpoint: str | None = None  # the policy's path when it was given as one (provenance in eval.json)
     demo_seeds: str | None = None  # the buffer whose demonstrations' seeds were run (None: evaluation seeds)
@@ -220,7 +223,9 @@ class EvalResult:
         on_demos = f", on the demonstrations' initial states ({self.demo_seeds})" if self.demo_seeds else ""
         head = (f"{self.task}, {self.episodes} episodes, k={self.execute_steps}"
                 f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps}"
-                f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ', greedy'}"
+                f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ''}"
+                f"{', actions sampled from the actor' if self.sample_actions else ''}"
+                f"{'' if self.sample_temperature or self.sample_actions else ', greedy'}"
                 f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''}"
                 f"{f' + N(0, {self.action_noise:g}^2) on the arm actions' if self.action_noise else ''}"
                 f"{on_demos}{', the own weights beside the moving average' if self.own_weights else ''} (95% Wilson CI)")
@@ -346,6 +351,7 @@ def evaluate(
     num_denoise_steps: int | None = None,
     sample_temperature: float | None = None,
     action_noise: float | None = None,
+    sample_actions: bool = False,
     action_readout: str | None = None,
     max_episode_steps: int | None = None,
     control_mode: str = "pd_ee_delta_pose",
@@ -386,6 +392,10 @@ def evaluate(
             (:class:`~mmada_rl.policy.ExecutionNoise`): the exploration policy of
             fine-tuning with ``collector.action_noise``. The noise is drawn from
             torch's RNG seeded with each episode's env seed, as sampled tokens are.
+        sample_actions: RL baselines only (the actors of ``recipes/baselines/online.py``):
+            sample each action from the actor's TanhNormal, the policy its training
+            rollouts ran, instead of executing its mean ``tanh(loc)``; seeded per
+            episode as sampled tokens are.
         action_readout: MMaDA policies only: ``"token"`` or ``"mean"``, how greedy chunks
             become actions (:attr:`~mmada_rl.policy.MMaDAConfig.action_readout`;
             ``None``: the policy's own).
@@ -411,6 +421,9 @@ def evaluate(
     EnvConfig(task=task)  # an unknown task fails before the model loads
     seeds = episode_seeds(episodes, seed_offset, demo_seeds, task)
     actor = load_actor(model, device, own_weights=own_weights)
+    if sample_actions and not isinstance(actor, OneStepChunkActor):
+        raise ValueError("sample_actions needs an RL baseline's actor (PPO, SAC or IQL of recipes/baselines/online.py; "
+                         f"got a {type(actor).__name__}); an MMaDA-VLA policy samples with sample_temperature.")
     cfg = eval_env_config(actor, task, image_size, control_mode=control_mode, max_episode_steps=max_episode_steps,
                           stage_flags=True)
     stages = task_spec(task).stages
@@ -451,7 +464,7 @@ def evaluate(
                              f"outputs {penv.actor.action_dim}-d ones; pass the control mode it was trained in.")
         limit = cfg.episode_steps  # None: ManiSkill's own TimeLimit ends the episode
         results, frames, first_episode = [], [], None
-        decoding = ExplorationType.RANDOM if sample_temperature else ExplorationType.DETERMINISTIC
+        decoding = ExplorationType.RANDOM if sample_temperature or sample_actions else ExplorationType.DETERMINISTIC
         devices = list(range(torch.cuda.device_count()))
         with set_exploration_type(decoding), torch.no_grad(), torch.random.fork_rng(devices=devices):
             penv.actor(penv.env.reset(seed=seeds[0]))  # warm-up: the first decode is not a steady-state latency
@@ -484,7 +497,7 @@ def evaluate(
         decode_ms_mean=float(latencies.mean()), decode_ms_p95=float(np.percentile(latencies, 95)),
         env_steps_per_second=sum(r.steps for r in results) / seconds,
         seeds=seeds, per_episode=results, sample_temperature=float(sample_temperature or 0.0),
-        action_noise=float(action_noise or 0.0),
+        action_noise=float(action_noise or 0.0), sample_actions=sample_actions,
         action_readout=readout,
         checkpoint=_checkpoint_label(model),
         demo_seeds=None if demo_seeds is None else str(demo_seeds),
@@ -598,6 +611,9 @@ def add_parser(sub) -> None:
     p.add_argument("--action-noise", type=float, default=None, metavar="STD",
                    help="MMaDA-VLA only: execute the greedy chunks with Gaussian noise of this std on the arm's "
                    "actions (the exploration policy of fine-tuning with collector.action_noise; default: none).")
+    p.add_argument("--sample-actions", action="store_true",
+                   help="RL baselines only (PPO, SAC, IQL): sample each action from the actor's distribution, as its "
+                   "training rollouts did, instead of executing its mean (default: the mean).")
     p.add_argument("--action-readout", choices=ACTION_READOUTS, default=None,
                    help="MMaDA-VLA with uniform-bin action tokens only: how a greedy chunk becomes actions; 'token': the "
                    "committed bins' centres, 'mean': each dimension's expected value under the distribution its token was "
@@ -633,7 +649,7 @@ def _run_eval(args: argparse.Namespace) -> int:
             execute_steps=args.execute_steps,
             temporal_ensemble=args.temporal_ensemble, num_denoise_steps=args.num_denoise_steps,
             sample_temperature=args.sample_temperature, action_noise=args.action_noise,
-            action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
+            sample_actions=args.sample_actions, action_readout=args.action_readout, max_episode_steps=args.max_episode_steps, control_mode=args.control_mode, image_size=args.image_size,
             out_dir=args.out or default_out, video=args.video, goal_grid=args.goal_grid,
             device=args.device, progress=not args.no_progress, own_weights=args.own_weights,
         )  # fmt: skip

@@ -110,6 +110,40 @@ def test_sac_loss_falls_and_the_agent_reloads(tmp_path):
         load_rl_actor(tmp_path / "loss_only")
 
 
+def test_sampled_evaluation_draws_the_actors_actions_and_repeats(tmp_path, monkeypatch):
+    config = RLNetworkConfig(state_dim=42, hidden_sizes=(16,))  # PickCube-v1's privileged state
+    torch.manual_seed(0)
+    actor = make_actor(config, SPEC)
+    RLAgent("sac", config, SACLoss(actor, make_qvalue(config), num_qvalue_nets=2, action_spec=SPEC), actor).save(tmp_path)
+    executed, forward = [], OneStepChunkActor.forward
+
+    def recording(self, tensordict):
+        out = forward(self, tensordict)
+        executed.append(out["action"].clone())
+        return out
+
+    monkeypatch.setattr(OneStepChunkActor, "forward", recording)
+
+    def run(**kwargs):
+        executed.clear()
+        result = evaluate(tmp_path, "PickCube-v1", 1, max_episode_steps=3, progress=False, **kwargs)
+        return result, torch.cat(executed)
+
+    greedy, greedy_actions = run()
+    sampled, sampled_actions = run(sample_actions=True)
+    _, again = run(sample_actions=True)
+    assert not greedy.sample_actions and sampled.sample_actions and "actions sampled from the actor" in sampled.table()
+    assert "greedy" in greedy.table() and "greedy" not in sampled.table()
+    assert sampled.to_dict()["eval/sample_actions"] == 1
+    # the same observation at the reset (the warm-up and the first step): the mean twice, two different draws
+    torch.testing.assert_close(greedy_actions[0], greedy_actions[1])
+    assert not torch.allclose(sampled_actions[0], sampled_actions[1])
+    # seeded with the episode (after the warm-up decode, row 0): a sampled evaluation repeats
+    torch.testing.assert_close(sampled_actions[1:], again[1:])
+    with pytest.raises(ValueError, match="sample_actions needs an RL baseline's actor"):
+        evaluate(actor, "PickCube-v1", 1, sample_actions=True)  # the bare TorchRL actor, not a chunk policy
+
+
 def test_bad_network_config_fails_with_a_sentence():
     with pytest.raises(ValueError, match="obs_mode must be one of"):
         RLNetworkConfig(obs_mode="depth")
