@@ -17,6 +17,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from mmada_rl.baselines.rl import (OneStepChunkActor, RLAgent, RLNetworkConfig, is_rl_agent_dir, load_rl_actor, make_actor,
                                    make_qvalue, make_value)
 from mmada_rl.evaluation import evaluate
+from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "baselines" / "online.py"
@@ -191,6 +192,9 @@ def test_each_baseline_trains_evaluates_and_checkpoints(toy_runs, algo, observat
     assert {k: final[k] for k in RECORD_KEYS} == history[-1]
     assert final["algo"] == algo and final["observation"] == observation and final["config"]["collector"]["total_env_steps"] == 64
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == checkpoints
+    # the training episodes (20 steps each, 64 env steps: 3 ended), as the comparison's rollout table reads them
+    (successes, episodes), = load_script("benchmarks/compare/compare.py").training_rollouts(run_dir, 64)
+    assert episodes == 3 and 0 <= successes <= episodes
     last = run_dir / "checkpoints" / checkpoints[-1]
     assert json.loads((last / "model" / "rl_agent.json").read_text())["algo"] == algo
     extra = torch.load(last / "trainer.pt", weights_only=False)["extra"]

@@ -423,8 +423,10 @@ def logged(out: Path, name: str) -> dict[int, float]:
 def training_rollouts(out: Path, window: int) -> list[tuple[int, int]]:
     """(successes, episodes) of the episodes a run's acting policy finished while it collected, one pair per window
     of ``window`` online env steps (a batch counts in the window its last env step falls in); empty for runs that do
-    not log how many episodes each batch ended (only our fine-tuning recipe does). For our methods this is the
-    sampled policy that fine-tuning trains, where the evaluations decode greedily."""
+    not log how many episodes each batch ended (our fine-tuning recipe and the online RL baselines do; imitation
+    runs have no rollouts, and online baseline runs older than that log did not). For our methods this is the
+    sampled policy that fine-tuning trains, and for the RL baselines their actor sampled, where the evaluations
+    act greedily."""
     rates, counts = logged(out, "train/success_rate"), logged(out, "train/episodes")
     if not counts:
         return []
@@ -545,8 +547,8 @@ def report(args: argparse.Namespace) -> int:
                   f"## success_once at equal online env steps (mean over seeds)\n\n{budget_rows}\n\n"
                   f"## Training rollouts: successes / episodes the acting policy finished, per {args.window:,} env steps\n\n"
                   "Our methods act with sampled tokens (the policy fine-tuning trains), or with the greedy chunk's actions "
-                  "plus Gaussian noise (the methods named for noisy rollouts), while the evaluations above decode "
-                  f"greedily.\n\n{rollout_rows}\n\n"
+                  "plus Gaussian noise (the methods named for noisy rollouts), the RL baselines with actions sampled "
+                  f"from their actors, while the evaluations above act greedily.\n\n{rollout_rows}\n\n"
                   "![curves](compare.png)\n", directory=args.out)
     print(table, budget_rows, rollout_rows, sep="\n\n")
     return 0

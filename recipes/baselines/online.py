@@ -103,8 +103,9 @@ def main(cfg: DictConfig) -> None:
         done = batch["next", "done"].squeeze(-1)
         metrics |= {"train/reward": float(batch["next", "reward"].mean()), "train/updates": progress.updates,
                     "time/collect_s": t0 - t_last, "time/update_s": time.perf_counter() - t0, "time/wall_s": progress.wall_s}
-        if done.any():
+        if done.any():  # episodes that ended in this batch; success terminates them (success_once)
             metrics["train/success_rate"] = float(batch["next", "success"].squeeze(-1)[done].float().mean())
+            metrics["train/episodes"] = int(done.sum())
         if eval_every and int(cfg.eval.episodes) and progress.env_steps // eval_every > before // eval_every and progress.env_steps < total:
             history.append(evaluate(cfg, nets.actor, progress))
             metrics |= {f"eval/{k}": v for k, v in history.records[-1].items() if k.startswith("success")}
