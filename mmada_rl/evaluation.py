@@ -221,11 +221,11 @@ class EvalResult:
             ("env steps / s", f"{self.env_steps_per_second:.1f}"),
         ]
         on_demos = f", on the demonstrations' initial states ({self.demo_seeds})" if self.demo_seeds else ""
+        sampled = (f", tokens sampled at T={self.sample_temperature:g}" if self.sample_temperature else "") + (
+            ", actions sampled from the actor" if self.sample_actions else "")
         head = (f"{self.task}, {self.episodes} episodes, k={self.execute_steps}"
                 f"{' + temporal ensemble' if self.temporal_ensemble else ''}, N={self.num_denoise_steps}"
-                f"{f', tokens sampled at T={self.sample_temperature:g}' if self.sample_temperature else ''}"
-                f"{', actions sampled from the actor' if self.sample_actions else ''}"
-                f"{'' if self.sample_temperature or self.sample_actions else ', greedy'}"
+                f"{sampled or ', greedy'}"
                 f"{', mean read-out' if self.action_readout == 'mean' and not self.sample_temperature else ''}"
                 f"{f' + N(0, {self.action_noise:g}^2) on the arm actions' if self.action_noise else ''}"
                 f"{on_demos}{', the own weights beside the moving average' if self.own_weights else ''} (95% Wilson CI)")
