@@ -14,6 +14,9 @@ reads the evaluation of the optimizer's own weights that a pretraining run with 
 ema.evaluate_raw=true`` logs beside its weight average's (``eval_raw/...``; ``RUN`` alone: the average).
 A fine-tuning run (``recipes/finetune``, e.g. one of ``benchmarks/compare``'s) is read from its
 ``eval_history.json``: its last evaluation, or with ``RUN@S`` the one at ``S`` online env steps.
+``REPORT.json#G/sS`` takes seed ``S`` of group ``G`` (counted from 1) of an earlier report written by
+this script, e.g. ``benchmarks/results/seeds_X.json#1/s0``: seeds whose runs are no longer on the
+machine are pooled with new ones from the figures their report recorded.
 For every group: each seed's ``success_once`` with its 95% Wilson interval, the mean and
 standard deviation over seeds, and the episodes of all seeds pooled (successes / trials,
 with their Wilson interval); where every source recorded the task's progress flags
@@ -83,9 +86,37 @@ def _split_tags(source: Path) -> tuple[Path, int | None, str]:
     return source, None, "eval"
 
 
+REPORT_SEED_SEPARATOR = "#"
+
+
+def read_report_seed(source: str) -> dict:
+    """``REPORT.json#G/sS``: seed ``S`` of group ``G`` (from 1) of an earlier report of this script, as it recorded it."""
+    report, _, tag = source.rpartition(REPORT_SEED_SEPARATOR)
+    group_index, _, seed = tag.partition("/s")
+    if not (group_index.isdigit() and seed.lstrip("-").isdigit()):
+        raise ValueError(f"{source}: a seed of an earlier report is named REPORT.json#G/sS, e.g. "
+                         f"benchmarks/results/seeds_X.json#1/s0 (group G counted from 1, training seed S).")
+    groups = json.loads(Path(report).read_text()).get("groups")
+    if not groups:
+        raise ValueError(f"{report} is not a report of benchmarks/seeds.py (it has no groups).")
+    if not 1 <= int(group_index) <= len(groups):
+        raise ValueError(f"{source}: {report} has groups 1 to {len(groups)}.")
+    group = groups[int(group_index) - 1]
+    rows = [r for r in group["seeds"] if str(r["seed"]) == seed]
+    if len(rows) != 1:
+        recorded = ", ".join(str(r["seed"]) for r in group["seeds"])
+        raise ValueError(f"{source}: group {group_index} ({group['label']!r}) of {report} has "
+                         f"{'no' if not rows else 'more than one'} seed {seed} (its seeds: {recorded}).")
+    row = {k: v for k, v in rows[0].items() if k not in ("source", "ci")}
+    return {"source": source, **row}
+
+
 def read_source(source: Path) -> dict:
     """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end, reached}``
     (``reached``: ``{flag: share of episodes}`` of the task's progress flags, empty where none were recorded)."""
+    head = str(source).rpartition(REPORT_SEED_SEPARATOR)[0]
+    if head.endswith(".json") and Path(head).is_file():
+        return read_report_seed(str(source))
     label = source
     source, at_step, prefix = _split_tags(source)
     if source.is_file():
@@ -165,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--group", nargs="+", action="append", required=True, metavar=("LABEL", "SOURCE"),
                         help="a label, then one source per training seed (eval.json, run directory, RUN@STEP for the "
                              "run's evaluation logged at STEP, RUN@raw or RUN@STEP@raw for the evaluation of the "
-                             "optimizer's own weights beside a weight average); repeatable")
+                             "optimizer's own weights beside a weight average, REPORT.json#G/sS for seed S of group G "
+                             "of an earlier report); repeatable")
     parser.add_argument("--name", default="seeds", help="result file name under --out (default: seeds)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)

@@ -327,6 +327,22 @@ def test_seed_report_pools_runs_and_eval_files_evaluated_alike(toy_pretrain_run,
     assert row["success_once"] == group["seeds"][0]["success_once"]
     with pytest.raises(ValueError, match=r"no evaluation at step 3 \(it logged: 6\)"):
         bench.main(["--group", "toy", f"{toy_pretrain_run}@3", "--out", str(tmp_path)])
+    # REPORT.json#G/sS: a seed an earlier report recorded, pooled with a new evaluation as if its run were still here
+    earlier = tmp_path / "at.json"
+    assert bench.main(["--group", "pooled", f"{earlier}#1/s0", str(tmp_path / "e1" / "eval.json"),
+                       "--name", "pooled", "--out", str(tmp_path)]) == 0
+    pooled, = json.loads((tmp_path / "pooled.json").read_text())["groups"]
+    assert pooled["seeds"][0]["source"] == f"{earlier}#1/s0" and pooled["seeds"][0]["step"] == 6
+    assert pooled["seeds"][0]["successes"] == row["successes"] and pooled["pooled"]["trials"] == 2
+    assert pooled["pooled"]["successes"] == row["successes"] + group["seeds"][1]["successes"]
+    with pytest.raises(ValueError, match=r"more than one seed 0"):  # seeds_toy holds seed 0 twice
+        bench.main(["--group", "x", f"{tmp_path / 'out' / 'seeds_toy.json'}#1/s0", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match=r"no seed 3 \(its seeds: 0\)"):
+        bench.main(["--group", "x", f"{earlier}#1/s3", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match=r"has groups 1 to 1"):
+        bench.main(["--group", "x", f"{earlier}#2/s0", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match=r"REPORT.json#G/sS"):
+        bench.main(["--group", "x", f"{earlier}#s0", "--out", str(tmp_path)])
 
 
 def test_push_contact_report_records_where_the_gripper_comes_down(toy_pretrain_run, tmp_path):
