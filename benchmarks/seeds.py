@@ -89,14 +89,15 @@ def _split_tags(source: Path) -> tuple[Path, int | None, str]:
 REPORT_SEED_SEPARATOR = "#"
 
 
-def read_report_seed(source: str) -> dict:
-    """``REPORT.json#G/sS``: seed ``S`` of group ``G`` (from 1) of an earlier report of this script, as it recorded it."""
-    report, _, tag = source.rpartition(REPORT_SEED_SEPARATOR)
+def read_report_seed(report: Path, tag: str) -> dict:
+    """Seed ``S`` of group ``G`` (from 1) of ``report``, an earlier report of this script, as it recorded it;
+    ``tag`` is ``G/sS``, what follows ``REPORT.json#`` in the source."""
+    source = f"{report}{REPORT_SEED_SEPARATOR}{tag}"
     group_index, _, seed = tag.partition("/s")
     if not (group_index.isdigit() and seed.lstrip("-").isdigit()):
         raise ValueError(f"{source}: a seed of an earlier report is named REPORT.json#G/sS, e.g. "
                          f"benchmarks/results/seeds_X.json#1/s0 (group G counted from 1, training seed S).")
-    groups = json.loads(Path(report).read_text()).get("groups")
+    groups = json.loads(report.read_text()).get("groups")
     if not groups:
         raise ValueError(f"{report} is not a report of benchmarks/seeds.py (it has no groups).")
     if not 1 <= int(group_index) <= len(groups):
@@ -114,9 +115,9 @@ def read_report_seed(source: str) -> dict:
 def read_source(source: Path) -> dict:
     """One seed's evaluation: ``{source, seed, step, episodes, successes, success_once, success_at_end, reached}``
     (``reached``: ``{flag: share of episodes}`` of the task's progress flags, empty where none were recorded)."""
-    head = str(source).rpartition(REPORT_SEED_SEPARATOR)[0]
-    if head.endswith(".json") and Path(head).is_file():
-        return read_report_seed(str(source))
+    report, _, tag = str(source).rpartition(REPORT_SEED_SEPARATOR)
+    if report.endswith(".json") and Path(report).is_file():
+        return read_report_seed(Path(report), tag)
     label = source
     source, at_step, prefix = _split_tags(source)
     if source.is_file():
