@@ -220,6 +220,12 @@ METHODS = {
                                                               "on the arm)", "rgb+proprio",
                                                               [a.replace("action_noise=0.05", "action_noise=0.025")
                                                                for a in _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA], True),
+    "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema with a "
+                                                             "longer moving average (ours: ema.power=0.9, about 2200 "
+                                                             "updates' horizon after 5000, against 600 at 0.75)",
+                                                             "rgb+proprio",
+                                                             [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA, "ema.power=0.9"],
+                                                             True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
