@@ -222,7 +222,7 @@ METHODS = {
                                                                for a in _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA], True),
     "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema with a "
                                                              "longer moving average (ours: ema.power=0.9, about 2200 "
-                                                             "updates' horizon after 5000, against 600 at 0.75)",
+                                                             "updates' horizon after 5080, against 600 at 0.75)",
                                                              "rgb+proprio",
                                                              [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA, "ema.power=0.9"],
                                                              True),
