@@ -1175,6 +1175,9 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     longer = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long", "PickCube-v1", 1, 1000, out, "x", 5,
                              500)  # and its longer moving average differs from it in the EMA's exponent alone
     assert set(longer) - set(gripper) == {"ema.power=0.9"} and set(gripper) <= set(longer)
+    quarter = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075", "PickCube-v1", 1, 1000, out,
+                              "x", 5, 500)  # and its quarter of online rows differs from it in that share alone
+    assert set(quarter) - set(gripper) == {"demos.ratio=0.75"} and set(gripper) <= set(quarter)
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")

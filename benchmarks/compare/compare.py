@@ -226,6 +226,12 @@ METHODS = {
                                                              "rgb+proprio",
                                                              [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA, "ema.power=0.9"],
                                                              True),
+    "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema "
+                                                                 "with three demonstration windows in four of each "
+                                                                 "minibatch (ours: demos.ratio=0.75, 12 demonstration "
+                                                                 "and 4 online rows)", "rgb+proprio",
+                                                                 [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA,
+                                                                  "demos.ratio=0.75"], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
