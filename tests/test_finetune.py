@@ -1164,20 +1164,19 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     keep = compare.command("mmada_gae_noise_privileged_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500)
     assert set(privileged) - set(keep) == off and set(keep) <= set(privileged)  # those three alone differ
     assert not off & set(compare.command("mmada_demos_only_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500))
-    # a method's no-RL control differs from it in the demonstrations' share of each minibatch alone
-    method = compare.command("mmada_return_to_go_noise_keep_lr1e4_ema", "PushCube-v1", 1, 1000, out, "x", 5, 500)
-    control = compare.command("mmada_demos_only_keep_lr1e4_ema", "PushCube-v1", 1, 1000, out, "x", 5, 500)
-    assert set(control) - set(method) == {"demos.ratio=1.0"} and set(method) <= set(control)
-    smaller = compare.command("mmada_return_to_go_noise_keep_lr1e4_ema_demos075", "PushCube-v1", 1, 1000, out, "x", 5,
-                              500)  # and its smaller online share differs from it in that share alone
-    assert set(smaller) - set(method) == {"demos.ratio=0.75"} and set(method) <= set(smaller)
-    gripper = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "PickCube-v1", 1, 1000, out, "x", 5, 500)
-    longer = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long", "PickCube-v1", 1, 1000, out, "x", 5,
-                             500)  # and its longer moving average differs from it in the EMA's exponent alone
-    assert set(longer) - set(gripper) == {"ema.power=0.9"} and set(gripper) <= set(longer)
-    quarter = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075", "PickCube-v1", 1, 1000, out,
-                              "x", 5, 500)  # and its quarter of online rows differs from it in that share alone
-    assert set(quarter) - set(gripper) == {"demos.ratio=0.75"} and set(gripper) <= set(quarter)
+    # a method's no-RL control differs from it in the demonstrations' share of each minibatch alone; its smaller online
+    # share and its longer moving average differ from it in that share, or the EMA's exponent, alone
+    for task, method, variant, override in (
+            ("PushCube-v1", "mmada_return_to_go_noise_keep_lr1e4_ema", "mmada_demos_only_keep_lr1e4_ema", "demos.ratio=1.0"),
+            ("PushCube-v1", "mmada_return_to_go_noise_keep_lr1e4_ema", "mmada_return_to_go_noise_keep_lr1e4_ema_demos075",
+             "demos.ratio=0.75"),
+            ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema",
+             "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long", "ema.power=0.9"),
+            ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema",
+             "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075", "demos.ratio=0.75")):
+        base = set(compare.command(method, task, 1, 1000, out, "x", 5, 500))
+        changed = set(compare.command(variant, task, 1, 1000, out, "x", 5, 500))
+        assert changed - base == {override} and base <= changed, variant
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")
