@@ -1177,6 +1177,11 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
         base = set(compare.command(method, task, 1, 1000, out, "x", 5, 500))
         changed = set(compare.command(variant, task, 1, 1000, out, "x", 5, 500))
         assert changed - base == {override} and base <= changed, variant
+    # the same method at the recipe's learning rate differs from it in that rate alone
+    base = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "PickCube-v1", 1, 1000, out, "x", 5, 500)
+    slow = compare.command("mmada_return_to_go_noise_keep_gripper_ema", "PickCube-v1", 1, 1000, out, "x", 5, 500)
+    assert [a for a in base if a != "optim.lr=1e-4"] == [a for a in slow if a != "optim.lr=3e-5"]
+    assert "optim.lr=1e-4" in base and "optim.lr=3e-5" in slow and len(base) == len(slow)
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")

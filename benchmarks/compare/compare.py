@@ -232,6 +232,10 @@ METHODS = {
                                                                  "and 4 online rows)", "rgb+proprio",
                                                                  [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA,
                                                                   "demos.ratio=0.75"], True),
+    "mmada_return_to_go_noise_keep_gripper_ema": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema at the recipe's "
+                                                  "learning rate (ours: optim.lr=3e-5 instead of 1e-4)", "rgb+proprio",
+                                                  [a.replace("optim.lr=1e-4", "optim.lr=3e-5")
+                                                   for a in _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
