@@ -1165,23 +1165,24 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert set(privileged) - set(keep) == off and set(keep) <= set(privileged)  # those three alone differ
     assert not off & set(compare.command("mmada_demos_only_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500))
     # a method's no-RL control differs from it in the demonstrations' share of each minibatch alone; its smaller online
-    # share and its longer moving average differ from it in that share, or the EMA's exponent, alone
-    for task, method, variant, override in (
-            ("PushCube-v1", "mmada_return_to_go_noise_keep_lr1e4_ema", "mmada_demos_only_keep_lr1e4_ema", "demos.ratio=1.0"),
+    # share, its longer moving average and its lower learning rate differ from it in that share, the EMA's exponent, or
+    # the rate alone (the override added, and the one it replaces where it replaces one; the rest in the same order)
+    for task, method, variant, replaced, override in (
+            ("PushCube-v1", "mmada_return_to_go_noise_keep_lr1e4_ema", "mmada_demos_only_keep_lr1e4_ema", None,
+             "demos.ratio=1.0"),
             ("PushCube-v1", "mmada_return_to_go_noise_keep_lr1e4_ema", "mmada_return_to_go_noise_keep_lr1e4_ema_demos075",
-             "demos.ratio=0.75"),
+             None, "demos.ratio=0.75"),
             ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema",
-             "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long", "ema.power=0.9"),
+             "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_long", None, "ema.power=0.9"),
             ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema",
-             "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075", "demos.ratio=0.75")):
-        base = set(compare.command(method, task, 1, 1000, out, "x", 5, 500))
-        changed = set(compare.command(variant, task, 1, 1000, out, "x", 5, 500))
-        assert changed - base == {override} and base <= changed, variant
-    # the same method at the recipe's learning rate differs from it in that rate alone
-    base = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "PickCube-v1", 1, 1000, out, "x", 5, 500)
-    slow = compare.command("mmada_return_to_go_noise_keep_gripper_ema", "PickCube-v1", 1, 1000, out, "x", 5, 500)
-    assert [a for a in base if a != "optim.lr=1e-4"] == [a for a in slow if a != "optim.lr=3e-5"]
-    assert "optim.lr=1e-4" in base and "optim.lr=3e-5" in slow and len(base) == len(slow)
+             "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075", None, "demos.ratio=0.75"),
+            ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "mmada_return_to_go_noise_keep_gripper_ema",
+             "optim.lr=1e-4", "optim.lr=3e-5")):
+        base = compare.command(method, task, 1, 1000, out, "x", 5, 500)
+        changed = compare.command(variant, task, 1, 1000, out, "x", 5, 500)
+        assert override in changed and (replaced is None or replaced in base), variant
+        assert [a for a in changed if a != override] == [a for a in base if a != replaced], variant
+        assert len(changed) == len(base) + (replaced is None), variant
     narrow = compare.command("mmada_rwr", "PickCube-v1", 1, 1000, out, "runs/p_s{seed}", 5, 500, "data/{task}-fov{seed}")
     assert "demos.dir=data/PickCube-v1-fov1" in narrow and "pretrained=runs/p_s1" in narrow
     bc = compare.command("bc", "PickCube-v1", 0, 0, out, "x", 5, 500, "y")
