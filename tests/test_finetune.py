@@ -1165,8 +1165,9 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     assert set(privileged) - set(keep) == off and set(keep) <= set(privileged)  # those three alone differ
     assert not off & set(compare.command("mmada_demos_only_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500))
     # a method's no-RL control differs from it in the demonstrations' share of each minibatch alone; its smaller online
-    # share, its longer moving average and its lower learning rate differ from it in that share, the EMA's exponent, or
-    # the rate alone (the override added, and the one it replaces where it replaces one; the rest in the same order)
+    # share, its longer moving average, its lower learning rate and its smaller exploration noise differ from it in that
+    # share, the EMA's exponent, the rate or the noise alone (the override added, and the one it replaces where it
+    # replaces one; the rest in the same order)
     for task, method, variant, replaced, override in (
             ("PushCube-v1", "mmada_return_to_go_noise_keep_lr1e4_ema", "mmada_demos_only_keep_lr1e4_ema", None,
              "demos.ratio=1.0"),
@@ -1177,7 +1178,10 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
             ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema",
              "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_demos075", None, "demos.ratio=0.75"),
             ("PickCube-v1", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "mmada_return_to_go_noise_keep_gripper_ema",
-             "optim.lr=1e-4", "optim.lr=3e-5")):
+             "optim.lr=1e-4", "optim.lr=3e-5"),
+            ("PickCube-v1", "mmada_return_to_go_noise_keep_gripper_ema",
+             "mmada_return_to_go_noise_keep_gripper_ema_noise002", "collector.action_noise=0.05",
+             "collector.action_noise=0.02")):
         base = compare.command(method, task, 1, 1000, out, "x", 5, 500)
         changed = compare.command(variant, task, 1, 1000, out, "x", 5, 500)
         assert override in changed and (replaced is None or replaced in base), variant

@@ -101,6 +101,8 @@ _RETURN_TO_GO_BASELINE_KEEP_LR1E4_EMA = [*(a.replace("standardize_advantage=true
 _RETURN_TO_GO_KEEP_LR1E4_GRIPPER = [*_RETURN_TO_GO_KEEP_LR1E4, "demos.grasp_hold_gripper_only=true"]
 #: and evaluated and saved as the moving average of the weights
 _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA = [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER, "ema.enabled=true"]
+#: the same at the recipe's learning rate
+_RETURN_TO_GO_KEEP_GRIPPER_EMA = [a.replace("optim.lr=1e-4", "optim.lr=3e-5") for a in _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA]
 #: path-likelihood PPO with group-relative success advantages (4 episodes per initial state)
 _PPO_GROUP = [*_FINETUNE, "algo=ppo", "env.reward=sparse",
               "advantage.estimator=group", "advantage.group_size=4", "optim.lr=1e-5"]
@@ -234,8 +236,13 @@ METHODS = {
                                                                   "demos.ratio=0.75"], True),
     "mmada_return_to_go_noise_keep_gripper_ema": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema at the recipe's "
                                                   "learning rate (ours: optim.lr=3e-5 instead of 1e-4)", "rgb+proprio",
-                                                  [a.replace("optim.lr=1e-4", "optim.lr=3e-5")
-                                                   for a in _RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA], True),
+                                                  _RETURN_TO_GO_KEEP_GRIPPER_EMA, True),
+    "mmada_return_to_go_noise_keep_gripper_ema_noise002": ("mmada_return_to_go_noise_keep_gripper_ema exploring with "
+                                                           "N(0, 0.02^2) on the arm instead of N(0, 0.05^2) (ours: the "
+                                                           "noise that costs the pretrained d_model=256 policies no "
+                                                           "success)", "rgb+proprio",
+                                                           [a.replace("action_noise=0.05", "action_noise=0.02")
+                                                            for a in _RETURN_TO_GO_KEEP_GRIPPER_EMA], True),
     "mmada_gae_noise_privileged_keep_ensemble": ("mmada_gae_noise_privileged_keep acting as one ensemble with the "
                                                  "policies pretrained with the other --ensemble-seeds (ours: the mean "
                                                  "greedy chunk + N(0, 0.05^2) runs; they stay frozen; evaluated alone)",
