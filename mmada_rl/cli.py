@@ -12,6 +12,7 @@ import sys
 #: sub-command modules, in the order ``--help`` lists them
 _COMMANDS = (
     "mmada_rl.doctor",
+    "mmada_rl.envs.cli",
     "mmada_rl.data.cli",
     "mmada_rl.tokenizers.cli",
     "mmada_rl.quickstart",

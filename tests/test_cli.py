@@ -4,8 +4,9 @@ from __future__ import annotations
 import pytest
 
 from mmada_rl.cli import build_parser, main
+from mmada_rl.envs.tasks import SUPPORTED_TASKS, TASKS
 
-SUBCOMMANDS = ("doctor", "collect", "merge", "info", "import-h5", "fit-tokenizers", "quickstart", "eval")
+SUBCOMMANDS = ("doctor", "tasks", "collect", "merge", "info", "import-h5", "fit-tokenizers", "quickstart", "eval")
 
 
 def test_top_level_help_lists_every_subcommand(capsys):
@@ -35,3 +36,36 @@ def test_collect_rejects_an_unknown_policy(capsys):
         main(["collect", "--task", "PickCube-v1", "--episodes", "1", "--out", "x", "--policy", "magic"])
     assert exit_.value.code == 2
     assert "invalid choice: 'magic'" in capsys.readouterr().err
+
+
+def test_tasks_lists_the_registry_tested_tasks_first(capsys):
+    assert main(["tasks"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:2] == ["task", "status"]
+    rows = [line.split() for line in lines[1:1 + len(TASKS)]]
+    assert [row[0] for row in rows[:len(SUPPORTED_TASKS)]] == list(SUPPORTED_TASKS)
+    assert {row[0] for row in rows} == set(TASKS)
+    pick = next(line for line in lines if line.startswith("PickCube-v1 "))
+    assert "tested" in pick and "is_grasped, is_obj_placed" in pick and TASKS["PickCube-v1"].instruction in pick
+
+
+def test_tasks_all_adds_maniskills_other_ids_with_the_generic_instruction(capsys):
+    assert main(["tasks", "--all"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[1:]]
+    generic = {row[0]: row for row in rows if row[1] == "generic"}
+    assert "PickSingleYCB-v1" in generic and not set(generic) & set(TASKS)
+    assert generic["PickSingleYCB-v1"][-3:] == ["the", "PickSingleYCB", "task"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["collect", "--task", "NoSuchTask-v1", "--episodes", "1", "--out", "OUT"], "Unknown task 'NoSuchTask-v1'"),
+    (["collect", "--task", "PickCube-v1", "--episodes", "1", "--out", "OUT", "--image-size", "5"], "image_size must be"),
+    (["info", "OUT"], "is not an mmada_rl buffer"),
+    (["import-h5", "OUT/trajectories.h5", "--out", "OUT"], "trajectories.json not found"),
+])
+def test_bad_input_is_a_one_line_error(argv, message, tmp_path, capsys):
+    argv = [arg.replace("OUT", str(tmp_path / "out")) for arg in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"mmada-rl {argv[0]}: error: ") and message in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()

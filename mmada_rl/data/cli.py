@@ -35,11 +35,10 @@ def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
 def _run_collect(args: argparse.Namespace) -> int:
     from mmada_rl.data.collect import collect
 
-    cfg = env_config_from_args(args)
     try:
         result = collect(
             args.out,
-            cfg,
+            env_config_from_args(args),
             episodes=args.episodes,
             policy=args.policy,
             checkpoint=args.checkpoint or (),
@@ -98,16 +97,24 @@ def _run_relabel(args: argparse.Namespace) -> int:
 def _run_info(args: argparse.Namespace) -> int:
     from mmada_rl.data.buffer import DemoBuffer
 
-    print(DemoBuffer.open(args.path).summary())
+    try:
+        buffer = DemoBuffer.open(args.path)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"mmada-rl info: error: {err}", file=sys.stderr)
+        return 2
+    print(buffer.summary())
     return 0
 
 
 def _run_import(args: argparse.Namespace) -> int:
     from mmada_rl.data.h5_import import import_h5, read_trajectory_json
 
-    task = args.task or read_trajectory_json(args.h5)["env_info"]["env_id"]
-    args.task = task
-    result = import_h5(args.h5, args.out, env_config_from_args(args), only_success=not args.keep_failures)
+    try:
+        args.task = args.task or read_trajectory_json(args.h5)["env_info"]["env_id"]
+        result = import_h5(args.h5, args.out, env_config_from_args(args), only_success=not args.keep_failures)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"mmada-rl import-h5: error: {err}", file=sys.stderr)
+        return 2
     print(result.buffer.summary())
     print(f"imported {result.imported} trajectories" + "".join(f"; skipped {n} × {r}" for r, n in result.skipped.items()))
     return 0

@@ -86,7 +86,7 @@ def task_spec(task_id: str) -> TaskSpec:
         f"Unknown task {task_id!r}. Supported and tested: {', '.join(SUPPORTED_TASKS)}; "
         f"also registered with an instruction: "
         f"{', '.join(t for t in TASKS if t not in SUPPORTED_TASKS)}. Any other ManiSkill3 "
-        "task id that builds without asset downloads works too (see `mmada-rl tasks`)."
+        "task id that builds without asset downloads works too (`mmada-rl tasks --all` lists them)."
     )
 
 
