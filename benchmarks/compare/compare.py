@@ -499,40 +499,17 @@ def named_runs(text: str) -> tuple[str, Path]:
     return (name.strip(), Path(path)) if sep else ("", Path(text))
 
 
-def report(args: argparse.Namespace) -> int:
+def plot_curves(results: dict, tasks: list[str], budgets: list[int], path: Path) -> Path:
+    """One panel per task: each online method's ``success_once`` against env steps (with several seeds, each seed
+    thin and their mean at ``budgets`` thick), each demonstration-only method a dashed level line."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [name for name, _ in args.runs]
-    if len(set(names)) < len(names):
-        raise SystemExit(f"[compare] report --runs: give each run directory but one its own NAME=PATH, got {names}")
-    results, rows = {}, []
-    for task in args.task:
-        for name, runs in args.runs:
-            for method, (label, obs, _, online) in METHODS.items():
-                runs_of = runs / task / method
-                seeds = sorted(p.name for p in runs_of.glob("s*")) if runs_of.exists() else []
-                histories = {s: history_of(runs_of / s, online) for s in seeds}
-                histories = {s: h for s, h in histories.items() if h}
-                if not histories:
-                    continue
-                entry = results.setdefault(task, {})[f"{method}@{name}" if name else method] = {
-                    "method": method, "label": f"{label} [{name}]" if name else label, "observations": obs,
-                    "online": online, "runs": str(runs), "histories": histories}
-                rollouts = {s: training_rollouts(runs_of / s, args.window) for s in histories}
-                if any(rollouts.values()):
-                    entry["rollouts"] = {s: r for s, r in rollouts.items() if r}
-                rows.extend(run_rows(task, entry))
-    if not rows:
-        print(f"[compare] no finished evaluations under {', '.join(str(r) for _, r in args.runs)} for {args.task}; "
-              "run `compare.py run` first.")
-        return 1
-    budgets = sorted(args.at) if args.at else budget_grid(results)
-    fig, axes = plt.subplots(1, len(args.task), figsize=(7 * len(args.task), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(tasks), figsize=(7 * len(tasks), 4.5), squeeze=False)
     legends = []
-    for ax, task in zip(axes[0], args.task):
+    for ax, task in zip(axes[0], tasks):
         entries = list(results.get(task, {}).values())
         palette = plt.get_cmap("tab10" if len(entries) <= 10 else "tab20")  # a colour per method up to 20
         for i, entry in enumerate(entries):
@@ -559,7 +536,36 @@ def report(args: argparse.Namespace) -> int:
             legend = ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13))
             legend.set_in_layout(False)  # else tight_layout shrinks the axes to fit it; savefig takes it in below
             legends.append(legend)
-    save_figure(fig, args.out / "compare.png", bbox_inches="tight", bbox_extra_artists=legends)
+    return save_figure(fig, path, bbox_inches="tight", bbox_extra_artists=legends)
+
+
+def report(args: argparse.Namespace) -> int:
+    names = [name for name, _ in args.runs]
+    if len(set(names)) < len(names):
+        raise SystemExit(f"[compare] report --runs: give each run directory but one its own NAME=PATH, got {names}")
+    results, rows = {}, []
+    for task in args.task:
+        for name, runs in args.runs:
+            for method, (label, obs, _, online) in METHODS.items():
+                runs_of = runs / task / method
+                seeds = sorted(p.name for p in runs_of.glob("s*")) if runs_of.exists() else []
+                histories = {s: history_of(runs_of / s, online) for s in seeds}
+                histories = {s: h for s, h in histories.items() if h}
+                if not histories:
+                    continue
+                entry = results.setdefault(task, {})[f"{method}@{name}" if name else method] = {
+                    "method": method, "label": f"{label} [{name}]" if name else label, "observations": obs,
+                    "online": online, "runs": str(runs), "histories": histories}
+                rollouts = {s: training_rollouts(runs_of / s, args.window) for s in histories}
+                if any(rollouts.values()):
+                    entry["rollouts"] = {s: r for s, r in rollouts.items() if r}
+                rows.extend(run_rows(task, entry))
+    if not rows:
+        print(f"[compare] no finished evaluations under {', '.join(str(r) for _, r in args.runs)} for {args.task}; "
+              "run `compare.py run` first.")
+        return 1
+    budgets = sorted(args.at) if args.at else budget_grid(results)
+    plot_curves(results, args.task, budgets, args.out / "compare.png")
     header = ["task", "method", "observations", "seed", "first evaluation @ env steps", "final success_once [95% CI]",
               "env steps", "eval episodes"]
     table = markdown_table(header, rows)
