@@ -11,6 +11,7 @@ from; nothing is simulated or trained here, so it runs in seconds on a fresh che
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -100,6 +101,7 @@ HEADLINE: tuple[Row, ...] = (
 )
 
 
+@functools.cache  # several rows read one file (a seeds report's groups, a compare report's methods)
 def _load(path: Path) -> dict:
     if not path.exists():
         raise SystemExit(f"[headline] {path} is missing: the headline reads the recorded results; restore it from git.")

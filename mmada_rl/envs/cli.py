@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from mmada_rl.envs.tasks import SUPPORTED_TASKS, TASKS, TaskSpec, registered_maniskill_ids
+from mmada_rl.envs.tasks import SUPPORTED_TASKS, TASKS, TaskSpec, registered_maniskill_ids, task_spec
 
 
 def task_rows(include_all: bool = False) -> list[tuple[str, ...]]:
@@ -15,8 +15,6 @@ def task_rows(include_all: bool = False) -> list[tuple[str, ...]]:
     """
     specs = [TASKS[t] for t in SUPPORTED_TASKS] + [s for t, s in TASKS.items() if t not in SUPPORTED_TASKS]
     if include_all:
-        from mmada_rl.envs.tasks import task_spec
-
         specs += [task_spec(t) for t in registered_maniskill_ids() if t not in TASKS]
     return [_row(spec) for spec in specs]
 
