@@ -15,8 +15,11 @@ depend on them) on the same real windows of ``--demos`` (random-shifted as the
 recipe trains them), and with ``--bc`` one step of the BC baseline on them.
 With several ``--devices`` (``cpu cuda``) every variant runs on each, its
 windows sampled on the CPU as the recipes sample them; a step on an accelerator
-is timed to its end (synchronised). The variants run interleaved, ``--repeats``
-rounds; each ratio is the median of the per-round ratios to the first row.
+is timed to its end (synchronised). With ``--precisions fp32 bf16`` every variant
+also trains with its forward pass under ``torch.autocast`` to bfloat16 (the
+recipes' ``optim.precision=bf16``), on the same windows. The variants run
+interleaved, ``--repeats`` rounds; each ratio is the median of the per-round
+ratios to the first row.
 
 Writes ``benchmarks/results/<name>.{json,md,png}`` (default ``train_throughput``).
 """
@@ -39,7 +42,7 @@ from mmada_rl.data import DemoBuffer, RandomShift, make_window_buffer  # noqa: E
 from mmada_rl.objectives import MaskedDiffusionLoss  # noqa: E402
 from mmada_rl.policy import MMaDAConfig, MMaDAModel  # noqa: E402
 from mmada_rl.tokenizers.bundle import Tokenizers  # noqa: E402
-from mmada_rl.training import make_optimizer  # noqa: E402
+from mmada_rl.training import PRECISIONS, autocast, make_optimizer  # noqa: E402
 
 
 def parse_variant(text: str) -> tuple[str, Path, dict]:
@@ -62,8 +65,9 @@ BASE_FIELDS = {"chunk_size": 5, "denoiser": "small",
                "denoiser_overrides": {"cross_attention_to_visual": True, "visual_encoder_channels": [32, 64, 128]}}
 
 
-def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float, device: torch.device):
-    """A closure running one training step of the variant on ``device`` on a (CPU) window batch; and its description."""
+def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float, device: torch.device, precision: str = "fp32"):
+    """A closure running one training step of the variant on ``device`` at ``precision`` (the forward pass's, as
+    ``optim.precision``) on a (CPU) window batch; and its description."""
     overrides = {**BASE_FIELDS["denoiser_overrides"], **fields.pop("denoiser_overrides", {})}
     model = MMaDAModel(MMaDAConfig(**{**BASE_FIELDS, **fields, "denoiser_overrides": overrides}),
                        Tokenizers.load(tokenizer_dir)).to(device).train()
@@ -71,14 +75,15 @@ def build_step(name: str, tokenizer_dir: Path, fields: dict, lr: float, device: 
     optimizer = make_optimizer(model.denoiser.parameters(), lr=lr, weight_decay=0.01)
 
     def step(windows) -> None:
-        losses = loss(model.loss_inputs(windows))
+        with autocast(precision, device):
+            losses = loss(model.loss_inputs(windows))
         total = sum(v for k, v in losses.items() if k.startswith("loss_"))
         optimizer.zero_grad(set_to_none=True)
         total.backward()
         optimizer.step()
         synchronize(device)
 
-    info = {"name": name, "device": str(device), "tokenizers": str(tokenizer_dir), "fields": {**fields, "denoiser_overrides": overrides},
+    info = {"name": name, "device": str(device), "precision": precision, "tokenizers": str(tokenizer_dir), "fields": {**fields, "denoiser_overrides": overrides},
             "sequence_length": model.layout.length, "parameters": model.denoiser.num_parameters()}
     return step, info
 
@@ -101,8 +106,30 @@ def build_bc_step(buffer: DemoBuffer, chunk_size: int, lr: float, device: torch.
         optimizer.step()
         synchronize(device)
 
-    return step, {"name": "BC baseline", "device": str(device), "tokenizers": "-", "fields": {}, "sequence_length": None,
+    return step, {"name": "BC baseline", "device": str(device), "precision": "fp32", "tokenizers": "-", "fields": {}, "sequence_length": None,
                   "parameters": sum(p.numel() for p in policy.parameters())}
+
+
+def plot_throughput(results: list[dict], by_device: bool, by_precision: bool, threads: int, batch_size: int,
+                    path: Path) -> Path:
+    """One bar per result, its windows per second (on a log axis when they span more than 10×), labelled."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(10, 0.6 * len(results) + 1.4))
+    names = [r["name"] + "".join(f" ({r[k]})" for k, shown in (("device", by_device), ("precision", by_precision))
+                                 if shown) for r in results][::-1]
+    rates = [r["windows_per_s"] for r in results][::-1]
+    ax.barh(names, rates, color="tab:blue")
+    for y, rate in enumerate(rates):
+        ax.annotate(f" {rate:.1f}", (rate, y), va="center", fontsize=8)
+    if max(rates) > 10 * min(rates):
+        ax.set_xscale("log")
+    ax.set_xlim(right=max(rates) * (2.0 if ax.get_xscale() == "log" else 1.15))
+    ax.set_xlabel(f"training windows per second ({threads} thread(s), batch {batch_size})")
+    ax.set_title("Pretraining throughput")
+    return save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default: 1, as the recipes train)")
     parser.add_argument("--devices", nargs="+", default=["cpu"], metavar="DEVICE",
                         help="torch devices each variant trains on, side by side (default: cpu; e.g. cpu cuda)")
+    parser.add_argument("--precisions", nargs="+", default=["fp32"], choices=PRECISIONS, metavar="PRECISION",
+                        help="forward-pass precisions each variant trains at, side by side: fp32 and/or bf16 "
+                             "(torch.autocast, as the recipes' optim.precision; default: fp32)")
     parser.add_argument("--random-shift", type=int, default=4, help="image shift of the windows (default: 4)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--name", default="train_throughput", help="results file stem (default: train_throughput)")
@@ -141,9 +171,10 @@ def main(argv: list[str] | None = None) -> int:
     steps, infos = [], []
     for device in devices:
         for name, directory, fields in args.variant:
-            step, info = build_step(name, directory, dict(fields), lr=3e-4, device=device)
-            steps.append(step)
-            infos.append(info)
+            for precision in args.precisions:
+                step, info = build_step(name, directory, dict(fields), lr=3e-4, device=device, precision=precision)
+                steps.append(step)
+                infos.append(info)
         if args.bc:
             step, info = build_bc_step(buffer, BASE_FIELDS["chunk_size"], lr=3e-4, device=device)
             steps.append(step)
@@ -166,29 +197,21 @@ def main(argv: list[str] | None = None) -> int:
         ratio = statistics.median(a / b for a, b in zip(t, times[0]))
         results.append({**info, "step_s": t, "median_step_s": median, "windows_per_s": args.batch_size / median,
                         "step_time_vs_first": ratio})
-        rows.append([info["name"], info["device"], info["sequence_length"] or "-", f"{info['parameters'] / 1e6:.2f}M",
+        rows.append([info["name"], info["device"], info["precision"], info["sequence_length"] or "-", f"{info['parameters'] / 1e6:.2f}M",
                      f"{median:.3f}", f"{args.batch_size / median:.1f}", f"{ratio:.2f}×"])
 
     md = (f"# Pretraining throughput\n\nOne training step (loss, backward, AdamW) on {args.batch_size} "
           f"real windows of `{args.demos}`, {args.threads} torch CPU thread(s), {args.repeats} interleaved rounds; "
           f"the step-time ratio is the median of the per-round ratios to the first row.\n\n"
-          + markdown_table(["configuration", "device", "sequence length", "parameters", "median step (s)", "windows/s",
+          + markdown_table(["configuration", "device", "precision", "sequence length", "parameters", "median step (s)", "windows/s",
                             "step time vs first"], rows) + "\n")
     accelerators = sorted({torch.cuda.get_device_name(d) for d in devices if d.type == "cuda"})
     write_results(args.name, {"batch_size": args.batch_size, "threads": args.threads, "devices": args.devices,
+                              "precisions": args.precisions,
                               "accelerators": accelerators, "variants": results}, md, args.out)
 
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 0.6 * len(results) + 1.2))
-    names = [r["name"] if len(devices) == 1 else f"{r['name']} ({r['device']})" for r in results][::-1]
-    ax.barh(names, [r["windows_per_s"] for r in results][::-1], color="tab:blue")
-    ax.set_xlabel(f"training windows per second ({args.threads} thread(s), batch {args.batch_size})")
-    ax.set_xscale("log")
-    ax.set_title("Pretraining throughput")
-    save_figure(fig, args.out / f"{args.name}.png")
+    plot_throughput(results, len(devices) > 1, len(args.precisions) > 1, args.threads, args.batch_size,
+                    args.out / f"{args.name}.png")
     print(md)
     return 0
 

@@ -30,7 +30,7 @@ from mmada_rl.baselines import (
 from mmada_rl.data import StateDropout
 from mmada_rl.evaluation import evaluate, load_actor, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
-from mmada_rl.training import WeightEMA, optimizer_step
+from mmada_rl.training import WeightEMA, autocast, optimizer_step
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "baselines" / "imitation.py"
@@ -266,6 +266,27 @@ def test_optimizer_step_sums_the_loss_entries_clips_and_reports_the_step():
     with pytest.raises(ValueError, match="no loss_"):
         optimizer_step({"accuracy": torch.tensor(1.0)}, layer.parameters(), optimizer, grad_clip=1.0)
 
+
+
+def test_autocast_runs_the_forward_pass_in_bfloat16_and_keeps_float32_weights_and_gradients():
+    """``optim.precision``: ``fp32`` changes nothing; ``bf16`` computes the layer in bfloat16 (close to float32)
+    while the parameters and their gradients stay float32, so AdamW and the saved weights are untouched."""
+    torch.manual_seed(0)
+    layer = torch.nn.Linear(64, 32)
+    x = torch.randn(16, 64)
+    with autocast("fp32"):
+        exact = layer(x)
+    assert exact.dtype == torch.float32
+    torch.testing.assert_close(exact, layer(x), rtol=0, atol=0)
+    with autocast("bf16", "cpu"):
+        low = layer(x)
+    assert low.dtype == torch.bfloat16
+    torch.testing.assert_close(low.float(), exact, rtol=0.02, atol=0.05)  # bfloat16 keeps ~3 significant digits
+    low.float().square().mean().backward()
+    assert layer.weight.dtype == layer.weight.grad.dtype == torch.float32
+    assert torch.isfinite(layer.weight.grad).all() and layer.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="precision must be one of fp32, bf16, got 'fp16'"):
+        autocast("fp16")
 
 # -- the recipe, as users run it --------------------------------------------------------
 def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:

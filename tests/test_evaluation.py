@@ -478,10 +478,13 @@ def test_train_throughput_benchmark_times_each_configuration_on_the_same_windows
     variants = [f'with codes={tokenizers}={{"denoiser": "tiny"}}',
                 f'cnn only={tokenizers}={{"denoiser": "tiny", "observation_tokens": false, "predict_goal": false}}']
     assert bench.main(["--demos", str(pick_demos), *(a for v in variants for a in ("--variant", v)), "--bc",
-                       "--batch-size", "2", "--repeats", "2", "--warmup", "0", "--out", str(tmp_path)]) == 0
+                       "--batch-size", "2", "--repeats", "2", "--warmup", "0", "--precisions", "fp32", "bf16",
+                       "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "train_throughput.json").read_text())
-    first, second, bc = result["variants"]
+    first, first_bf16, second, second_bf16, bc = result["variants"]
     assert [first["name"], second["name"], bc["name"]] == ["with codes", "cnn only", "BC baseline"]
+    assert [v["precision"] for v in result["variants"]] == ["fp32", "bf16", "fp32", "bf16", "fp32"]  # each variant at both
+    assert first_bf16["name"] == "with codes" and second_bf16["sequence_length"] == second["sequence_length"]
     # without the observation codes and the goal image the sequence is shorter by both
     assert second["sequence_length"] < first["sequence_length"] and bc["sequence_length"] is None
     assert first["fields"]["denoiser_overrides"]["visual_encoder_channels"] == [32, 64, 128]  # the base's CNN kept
@@ -489,7 +492,7 @@ def test_train_throughput_benchmark_times_each_configuration_on_the_same_windows
         assert len(v["step_s"]) == 2 and all(t > 0 for t in v["step_s"]) and v["windows_per_s"] > 0
     assert first["step_time_vs_first"] == 1.0
     markdown = (tmp_path / "train_throughput.md").read_text()
-    assert "| cnn only |" in markdown and "| BC baseline |" in markdown and "Reproduce:" in markdown
+    assert "| cnn only | cpu | bf16 |" in markdown and "| BC baseline |" in markdown and "Reproduce:" in markdown
     assert (tmp_path / "train_throughput.png").stat().st_size > 0
     with pytest.raises(SystemExit):  # no fitted tokenizers there
         bench.main(["--demos", str(pick_demos), "--variant", f"x={tmp_path}={{}}", "--out", str(tmp_path)])

@@ -27,8 +27,8 @@ from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import DecisionIndexBaseline, group_relative_advantages, returns_to_go
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAModel, make_policy_env
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
-from mmada_rl.training.checkpoint import load_checkpoint
-from checkpoint_checks import check_average_beside_own_weights
+from mmada_rl.training.checkpoint import latest_checkpoint, load_checkpoint
+from checkpoint_checks import check_average_beside_own_weights, weights
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -944,6 +944,9 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     ("noisy_return_to_go", ["advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
                             "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0",
                             "optim.lr=1e-4", "optim.lr_decay=cosine"], 30),
+    ("noisy_return_to_go_bf16", ["advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
+                                 "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "eval.episodes=0",
+                                 "optim.precision=bf16"], 30),
     ("noisy_return_to_go_baseline", ["advantage.estimator=return_to_go", "advantage.baseline_episodes=4",
                                      "loss.rwr.weighting=signed", "loss.rwr.normalize_weights=true",
                                      "collector.action_noise=0.1", "eval.episodes=0"], 30),
@@ -973,6 +976,11 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         lrs = [tuple(map(float, line.split(","))) for line in (scalars / "lr.csv").read_text().split()]
         assert len(lrs) >= 2 and all(b[1] < a[1] for a, b in zip(lrs, lrs[1:]))
         assert lrs[0][1] < 1e-4 and lrs[-1][0] >= steps and lrs[-1][1] == pytest.approx(1e-5)
+    if name == "noisy_return_to_go_bf16":  # the updates' forward pass in bfloat16: finite losses, float32 weights
+        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        losses = [float(line.split(",")[1]) for line in (scalars / "loss.csv").read_text().split()]
+        assert losses and all(math.isfinite(v) for v in losses)
+        assert all(w.dtype == torch.float32 for w in weights(latest_checkpoint(tmp_path / name)).values())
     if name == "noisy_return_to_go_baseline":  # returns to go stored as value targets, relative ones as advantages
         rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(tmp_path / name / "online_buffer")
         advantage, to_go = rows.get(ADVANTAGE_KEY).reshape(-1), rows.get(VALUE_TARGET_KEY).reshape(-1)
@@ -1137,6 +1145,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["optim.min_lr_ratio=2"], "optim.min_lr_ratio must lie in [0, 1]"),
     (["advantage.baseline_episodes=8"], "a decision-index baseline (> 0) compares returns to go"),
     (["advantage.estimator=return_to_go", "advantage.baseline_episodes=-1"], "advantage.baseline_episodes=-1"),
+    (["optim.precision=fp16"], "precision must be one of fp32, bf16, got 'fp16'"),
+    (["algo=ppo", "optim.precision=bf16"], "so PPO's ratios would not start at 1"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

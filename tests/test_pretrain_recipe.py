@@ -199,6 +199,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         (["model.visual_encoder_freeze=true"], "model.visual_encoder_freeze=true fixes a CNN copied from "
                                                "model.visual_encoder_init"),
         (["model.visual_encoder_init=runs/bc"], "copies a CNN into the denoiser's own, which it does not have"),
+        (["optim.precision=fp16"], "precision must be one of fp32, bf16, got 'fp16'"),
     ],
 )
 def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):
@@ -318,6 +319,26 @@ def test_cpu_config_shortens_the_sequence_and_trains(pick_demos, tmp_path):
     assert saved["observation_tokens"] is False and saved["proprio_drop_dims"] == list(range(9, 18))
     assert saved["denoiser_overrides"]["d_model"] == 128
     assert "sequence length 92;" in proc.stdout  # 214 with maniskill.yaml's layout (benchmarks/train_throughput.py)
+
+
+def test_bf16_forward_pass_trains_and_saves_float32_weights(toy_run, pick_demos, tmp_path):
+    """``optim.precision=bf16``: the recipe trains with its forward pass under autocast to bfloat16, its losses
+    those of the same run in float32 (same seed: same windows and masks) to bfloat16's precision; the
+    optimizer's weights, hence the saved policy's, stay float32."""
+    histories = {}
+    for precision in ("fp32", "bf16"):
+        run_dir = tmp_path / precision
+        proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=3",
+                          "logger.log_interval=1", "num_threads=1", "eval.episodes=0",
+                          f"tokenizers.dir={toy_run / 'tokenizers'}", f"optim.precision={precision}")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        histories[precision] = json.loads((run_dir / "history.json").read_text())
+    assert [h["step"] for h in histories["bf16"]] == [1, 2, 3]
+    for low, exact in zip(histories["bf16"], histories["fp32"]):
+        assert low["train/loss"] == pytest.approx(exact["train/loss"], rel=0.02)
+        assert low["train/loss"] != exact["train/loss"]  # computed in bfloat16 indeed
+    saved = weights(latest_checkpoint(tmp_path / "bf16"))
+    assert saved and all(w.dtype == torch.float32 for w in saved.values())
 
 
 def test_held_out_demonstrations_are_scored_while_training(toy_run, pick_demos, push_demos, tmp_path):

@@ -354,6 +354,7 @@ class MaskedDiffusionLoss(LossModule):
             else:
                 hidden = net.encode(noisy, noise_level, rows_visual)  # (B*C, L, D)
                 logits = net.project(hidden[rows, cols], cols)  # (M, V)
+        logits = logits.float()  # under autocast (optim.precision=bf16) the scores and their softmaxes in float32
         targets = rows_clean[rows, cols]
         segment = layout.segment_ids.to(device)[cols]
         ce = self._cross_entropy(logits, targets, segment == ACTION_SEGMENT)  # (M,)

@@ -242,7 +242,7 @@ class RewardWeightedDiffusionLoss(MaskedDiffusionLoss):
         with torch.no_grad():
             self.reference.to(s.noisy.device)
             ref_hidden = self.reference.encode(s.noisy, s.noise_level, s.visual)
-            ref_logp = F.log_softmax(self.reference.project(ref_hidden[rows, cols], cols), -1)
+            ref_logp = F.log_softmax(self.reference.project(ref_hidden[rows, cols], cols).float(), -1)
         logp = F.log_softmax(s.logits[is_action], -1)
         finite = torch.isfinite(ref_logp) & torch.isfinite(logp)  # out-of-modality entries are -inf in both
         ref_p = ref_logp.exp()

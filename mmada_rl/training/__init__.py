@@ -15,12 +15,14 @@ from mmada_rl.training.ema import (
     make_weight_ema,
     resume_own_weights,
 )
-from mmada_rl.training.optim import cosine_decay, make_optimizer, make_scheduler, optimizer_step
+from mmada_rl.training.optim import PRECISIONS, autocast, cosine_decay, make_optimizer, make_scheduler, optimizer_step
 from mmada_rl.training.run import require_cpu, start_run
 
 __all__ = [
+    "PRECISIONS",
     "Checkpoint",
     "WeightEMA",
+    "autocast",
     "cosine_decay",
     "ema_applied",
     "ema_checkpointed",

@@ -1,10 +1,27 @@
 """Optimizer, learning-rate schedule (AdamW, linear warm-up, cosine decay) and the gradient step of the recipes."""
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Iterable, Mapping
 
 import torch
+
+#: What ``autocast`` takes: the precision of a training step's forward pass.
+PRECISIONS = ("fp32", "bf16")
+
+
+def autocast(precision: str, device: str | torch.device = "cpu") -> contextlib.AbstractContextManager:
+    """The context a training step's forward pass runs in at ``precision``: ``fp32`` changes nothing; ``bf16``
+    is ``torch.autocast`` to bfloat16, so matrix products and convolutions run in bfloat16 while the weights,
+    their gradients and the optimizer's state stay float32 (and the ops autocast keeps in float32 stay so).
+    On CPUs with AVX512-BF16 (these machines' AMD EPYC) a step of the d = 256 policy takes about a third
+    less time (benchmarks/train_throughput.py); on GPUs it is the usual mixed precision."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}.")
+    if precision == "fp32":
+        return contextlib.nullcontext()
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
 
 
 def make_optimizer(params, *, lr: float, weight_decay: float = 0.01, betas=(0.9, 0.95)) -> torch.optim.AdamW:

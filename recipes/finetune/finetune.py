@@ -78,6 +78,7 @@ from tqdm.auto import tqdm
 
 from mmada_rl.evaluation import evaluate
 from mmada_rl.training import (
+    autocast,
     ema_applied,
     ema_checkpointed,
     make_weight_ema,
@@ -291,7 +292,8 @@ def main(cfg: DictConfig) -> None:
                     online.extend(rows)
                 model.train()
                 for _ in range(int(cfg.optim.updates_per_batch) if len(online) or not n_online else 0):
-                    losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
+                    with autocast(cfg.optim.precision):  # optim.precision=bf16: the forward pass in bfloat16
+                        losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
                     stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
                     updates += 1
             elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped

@@ -97,6 +97,11 @@ def check_config(cfg: DictConfig) -> None:
     if noise > 0 and cfg.algo != "rwr":
         raise ValueError("collector.action_noise > 0 stores the executed actions' tokens, which no decoding path produced; "
                          "path-likelihood PPO needs the sampled paths: use algo=rwr or collector.action_noise=0.")
+    training.autocast(cfg.optim.precision)  # an unknown optim.precision fails here
+    if cfg.optim.precision != "fp32" and cfg.algo != "rwr":
+        raise ValueError(f"optim.precision={cfg.optim.precision} computes the updates' log-probabilities in lower precision "
+                         "than the sampler recorded them, so PPO's ratios would not start at 1: use algo=rwr or "
+                         "optim.precision=fp32.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) < 0:
         raise ValueError(f"loss.ppo.demo_coef must be >= 0, got {cfg.loss.ppo.demo_coef!r}.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) > 0 and split_batch(cfg)[1] == 0:

@@ -29,6 +29,7 @@ from tqdm.auto import tqdm
 
 from mmada_rl.data import window_generators
 from mmada_rl.training import (
+    autocast,
     ema_applied,
     ema_checkpointed,
     make_weight_ema,
@@ -91,6 +92,7 @@ def validate(model, ema, batches: list) -> dict:
 @hydra.main(config_path="config", config_name="toy", version_base=None)
 def main(cfg: DictConfig) -> None:
     run_dir, config = start_run(cfg)
+    autocast(cfg.optim.precision, cfg.device)  # a bad optim.precision fails here, before the data and tokenizers
 
     buffers = make_demo_buffers(cfg)
     tokenizers = make_tokenizers(cfg, buffers, run_dir)
@@ -127,7 +129,8 @@ def main(cfg: DictConfig) -> None:
     for step in pbar:
         t0 = time.perf_counter()
         batch = data.sample()
-        losses = loss_module(model.loss_inputs(batch))
+        with autocast(cfg.optim.precision, cfg.device):  # optim.precision=bf16: the forward pass in bfloat16
+            losses = loss_module(model.loss_inputs(batch))
         scalars = optimizer_step(losses, model.denoiser.parameters(), optimizer, grad_clip=cfg.optim.grad_clip,
                                  scheduler=scheduler, ema=ema)
         done = step + 1
