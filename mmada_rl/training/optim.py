@@ -15,8 +15,9 @@ def autocast(precision: str, device: str | torch.device = "cpu") -> contextlib.A
     """The context a training step's forward pass runs in at ``precision``: ``fp32`` changes nothing; ``bf16``
     is ``torch.autocast`` to bfloat16, so matrix products and convolutions run in bfloat16 while the weights,
     their gradients and the optimizer's state stay float32 (and the ops autocast keeps in float32 stay so).
-    On CPUs with AVX512-BF16 (these machines' AMD EPYC) a step of the d = 256 policy takes about a third
-    less time (benchmarks/train_throughput.py); on GPUs it is the usual mixed precision."""
+    On CPUs with AVX512-BF16 (these machines' AMD EPYC) a step of the d = 256 policy takes 0.73× the time
+    and one at d = 128 1.07× (benchmarks/results/train_throughput_bf16.md); on GPUs it is the usual mixed
+    precision (not measured here)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}.")
     if precision == "fp32":
