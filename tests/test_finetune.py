@@ -890,6 +890,60 @@ def _logged(run_dir: Path, name: str) -> list[tuple[str, str]]:
     return [tuple(row.split(",")[:2]) for row in rows]
 
 
+def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
+    """collector.overlap=true: the same run as ``rwr_run`` with each next batch collected during the updates."""
+    run_dir = tmp_path / "overlap"
+    args = [f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", "collector.overlap=true"]
+    proc = run_recipe(*args, *COMMON)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "collector.overlap=true: each batch is collected in a background thread" in proc.stdout
+    history = json.loads((run_dir / "eval_history.json").read_text())
+    assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
+    # the first batch is collected before any update, by the pretrained weights and the same RNG draws as the
+    # sequential run's; later ones by weights one iteration older than the sequential run's
+    assert _logged(run_dir, "chunk_reward")[0] == _logged(rwr_run, "chunk_reward")[0]
+    timing = run_dir / "logs" / "scalars" / "time"
+    collected = [float(row.split(",")[1]) for row in (timing / "collect_ahead_s.csv").read_text().split()]
+    iterations = [float(row.split(",")[1]) for row in (timing / "iteration_s.csv").read_text().split()]
+    assert len(collected) == len(iterations) == 3 and all(s > 0 for s in collected + iterations)
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir())[-1] == "step_00000003"
+    resumed = run_recipe(*args, *COMMON[:3], "collector.total_env_steps=50", "collector.decisions_per_batch=2",
+                         "checkpoint.interval=1", "checkpoint.resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "iteration 3, 30 env steps" in resumed.stdout and "done: 50 env steps, 10 updates" in resumed.stdout
+
+
+def test_overlapped_collection_with_execution_noise_repeats_bit_for_bit(toy_pretrain_run, pick_demos, tmp_path):
+    """Greedy chunks with their own noise RNG draw nothing from the RNG the updates use: the overlapped run repeats."""
+    logs = []
+    for name in ("a", "b"):
+        proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
+                          *COMMON, "eval.episodes=0", "collector.overlap=true", "collector.action_noise=0.1",
+                          "advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
+                          "loss.rwr.standardize_advantage=true")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        logs.append([_logged(tmp_path / name, key) for key in ("chunk_reward", "loss", "grad_norm")])
+    assert logs[0] == logs[1] and len(logs[0][1]) == 3
+
+
+def test_overlap_benchmark_times_both_loops_on_real_fine_tuning_runs(toy_pretrain_run, pick_demos, tmp_path):
+    bench = load_script("benchmarks/finetune_overlap.py", "finetune_overlap")
+    assert bench.main(["--pretrained", str(toy_pretrain_run), "--demos", str(pick_demos), "--method",
+                       "mmada_gae_noise_absorbing", "--iterations", "3", "--skip", "1", "--rounds", "1",
+                       "--steps-per-iteration", "10", "--override", "collector.decisions_per_batch=2",
+                       "--override", "optim.updates_per_batch=2", "--override", "env.max_episode_steps=10",
+                       "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "finetune_overlap.json").read_text())
+    rows = {r["label"]: r for r in result["results"]}
+    assert list(rows) == ["sequential, 1 thread", "overlapped, 1 thread"]
+    assert rows["sequential, 1 thread"]["ratio_to_first"] == 1.0 and rows["sequential, 1 thread"]["median_collect_ahead_s"] is None
+    overlapped = rows["overlapped, 1 thread"]
+    assert overlapped["median_collect_ahead_s"] > 0 and overlapped["median_iteration_s"] > 0
+    assert all(run["iterations"] == 2 and run["env_steps_per_iteration"] == 10 for run in result["runs"])
+    assert (tmp_path / "finetune_overlap.png").stat().st_size > 0
+    assert "Reproduce:" in (tmp_path / "finetune_overlap.md").read_text()
+
+
 def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(
         rwr_run, toy_pretrain_run, pick_demos, tmp_path):
     averaged = tmp_path / "ema"
@@ -1110,10 +1164,13 @@ def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the
     assert len(saved_online_buffer(run_dir)) == 2  # collector.decisions_per_batch of the one iteration after the warm-up
 
 
-def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path):
+@pytest.mark.parametrize("overlap", [False, True])
+def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path,
+                                                                             overlap):
     run_dir = tmp_path / "failing"
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
-                      "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2")
+                      "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2",
+                      f"collector.overlap={str(overlap).lower()}")
     assert proc.returncode != 0
     assert "collection failed after" in proc.stderr and "injected env failure" in proc.stderr
     assert "checkpoint.resume=true" in proc.stderr
@@ -1147,6 +1204,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["advantage.estimator=return_to_go", "advantage.baseline_episodes=-1"], "advantage.baseline_episodes=-1"),
     (["optim.precision=fp16"], "precision must be one of fp32, bf16, got 'fp16'"),
     (["algo=ppo", "optim.precision=bf16"], "so PPO's ratios would not start at 1"),
+    (["algo=ppo", "collector.overlap=true"], "so PPO's ratios would not start at 1 on the fresh batch"),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)

@@ -7,6 +7,7 @@ from mmada_rl.training.checkpoint import (
     resume_training,
     save_checkpoint,
 )
+from mmada_rl.training.collect_ahead import CollectAhead, acting_copy
 from mmada_rl.training.ema import (
     WeightEMA,
     ema_applied,
@@ -21,7 +22,9 @@ from mmada_rl.training.run import require_cpu, start_run
 __all__ = [
     "PRECISIONS",
     "Checkpoint",
+    "CollectAhead",
     "WeightEMA",
+    "acting_copy",
     "autocast",
     "cosine_decay",
     "ema_applied",

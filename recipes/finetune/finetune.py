@@ -54,6 +54,12 @@ discounted returns, so that the first advantages come from a critic that has see
 first ``N`` online env steps: the policy is not updated, and those rollouts, whose advantages came from the
 cold critic, never enter the online buffer (which otherwise keeps them, with their advantages, for the run).
 
+With ``collector.overlap=true`` (``algo=rwr``) the next batch is collected in a background thread while this
+iteration's updates run (:class:`~mmada_rl.training.CollectAhead`): a frozen copy of the policy acts, its weights
+copied from the model just before each collection starts, so each batch comes from the weights of one iteration
+earlier than the sequential loop's. Evaluations and checkpoints wait for the collection in flight;
+``time/collect_s`` is then the wait for the batch, ``time/collect_ahead_s`` the collection itself.
+
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
 against env steps. With ``ema.enabled=true`` a moving average of the denoiser's weights
@@ -78,6 +84,8 @@ from tqdm.auto import tqdm
 
 from mmada_rl.evaluation import evaluate
 from mmada_rl.training import (
+    CollectAhead,
+    acting_copy,
     autocast,
     ema_applied,
     ema_checkpointed,
@@ -206,7 +214,11 @@ def main(cfg: DictConfig) -> None:
             print(f"{PREFIX} value network fitted to the demonstrations' returns: "
                   f"{cfg.value.pretrain_steps} steps, loss {value_loss:.3f} over the last tenth")
 
+    ahead: CollectAhead | None = None  # collector.overlap: the next batch is collected while the updates run
+
     def checkpoint() -> Path:
+        if ahead is not None:  # the collection in flight draws from the noise RNG being saved: let it finish
+            ahead.wait()
         if len(online):
             online.dumps(run_dir / BUFFER_DIR)
         extra = {"env_steps": env_steps, "updates": updates, "eval_history": history,
@@ -237,17 +249,28 @@ def main(cfg: DictConfig) -> None:
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps"
           + (f"; the critic alone learns for the first {warmup} env steps" if warmup else ""))
 
-    penv = make_policy_env_for(cfg, model, noise_generator)
+    overlap = bool(cfg.collector.get("overlap", False))
+    if overlap:  # a frozen copy acts in the collector's thread, its weights refreshed before each collection
+        acting = acting_copy(model)
+        acting.sampler = exploration_sampler(cfg, acting)
+    else:
+        acting = model
+    penv = make_policy_env_for(cfg, acting, noise_generator)
     collector = make_collector(cfg, penv)
     batches = iter(collector)
+    if overlap:
+        ahead = CollectAhead(batches, sync=lambda: acting.load_state_dict(model.state_dict()))
+        print(f"{PREFIX} collector.overlap=true: each batch is collected in a background thread while the previous "
+              "batch's updates run, by the weights from before those updates")
     pbar = tqdm(total=total, initial=min(env_steps, total), desc=f"finetune {cfg.algo}", unit="step")
     try:
         while env_steps < total:
             t0 = time.perf_counter()
             model.eval()  # sampling and the recorded paths without dropout
-            model.sampler = explore_sampler
+            if ahead is None:
+                model.sampler = explore_sampler
             try:
-                batch = next(batches)
+                batch, collected_s = ahead.take() if ahead is not None else (next(batches), None)
             except Exception as err:  # an env (or worker) failed: keep what was learned and collected
                 model.sampler = eval_sampler
                 path = checkpoint()
@@ -257,10 +280,14 @@ def main(cfg: DictConfig) -> None:
             model.sampler = eval_sampler  # evaluation and checkpoints keep the model's own sampler
             steps = int(executed_steps(batch).sum())
             env_steps += steps
+            if ahead is not None and env_steps < total:  # the next batch, by the weights before this one's updates
+                ahead.start()
             warming = env_steps <= warmup  # value.warmup_env_steps: the critic learns, the policy waits
             pbar.update(steps)
-            collect_s = time.perf_counter() - t0
+            collect_s = time.perf_counter() - t0  # with collector.overlap: the wait for the batch collected ahead
             metrics = {"train/chunk_reward": float(batch.get(("next", "reward")).mean()), "time/collect_s": collect_s}
+            if collected_s is not None:
+                metrics["time/collect_ahead_s"] = collected_s  # the collection's own duration in its thread
             ended = batch.get(("next", "done")).reshape(-1)
             if ended.any():  # episodes that ended in this batch; success terminates them (success_once)
                 metrics["train/success_rate"] = float(batch.get(("next", SUCCESS_KEY)).reshape(-1)[ended].float().mean())
@@ -309,11 +336,14 @@ def main(cfg: DictConfig) -> None:
             if stepped:  # means over the iteration's gradient steps (PPO's clip fraction and KL grow over its epochs)
                 metrics.update({f"train/{k}": sum(s[k] for s in stepped) / len(stepped) for k in stepped[0]})
             metrics["time/update_s"] = time.perf_counter() - t1
+            metrics["time/iteration_s"] = time.perf_counter() - t0  # collection (or the wait for it) to the last update
             iteration += 1
             metrics.update({"train/env_steps": env_steps, "train/updates": updates})
 
             crossed = eval_every and (env_steps // eval_every) > ((env_steps - steps) // eval_every)
             if int(cfg.eval.episodes) > 0 and (crossed or env_steps >= total):
+                if ahead is not None:  # evaluation sets the process-wide exploration type the collection reads
+                    ahead.wait()
                 with ema_applied(ema):  # ema.enabled: the moving average is what is evaluated
                     history.append(run_eval(cfg, model, env_steps, updates, start))
                 metrics["eval/success_once"] = history[-1]["success_once"]
@@ -326,6 +356,8 @@ def main(cfg: DictConfig) -> None:
                 checkpoint()
     finally:
         pbar.close()
+        if ahead is not None:
+            ahead.close()
         collector.shutdown()
 
     (run_dir / "eval_history.json").write_text(json.dumps(history, indent=2))

@@ -102,6 +102,10 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"optim.precision={cfg.optim.precision} computes the updates' log-probabilities in lower precision "
                          "than the sampler recorded them, so PPO's ratios would not start at 1: use algo=rwr or "
                          "optim.precision=fp32.")
+    if cfg.collector.get("overlap", False) and cfg.algo != "rwr":
+        raise ValueError("collector.overlap=true collects each batch by the weights of one iteration earlier, so PPO's "
+                         "ratios would not start at 1 on the fresh batch it trains on: use algo=rwr or "
+                         "collector.overlap=false.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) < 0:
         raise ValueError(f"loss.ppo.demo_coef must be >= 0, got {cfg.loss.ppo.demo_coef!r}.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) > 0 and split_batch(cfg)[1] == 0:
