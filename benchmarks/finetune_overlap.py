@@ -14,6 +14,9 @@ evaluation, for ``--iterations`` iterations per run: every combination of ``coll
 or the wait for it, to the last update) after its first ``--skip`` iterations (start-up; the overlapped loop's
 first batch has nothing to overlap with). Ratios are to the sequential loop at the first ``--threads`` value, per
 round, then the median over rounds. Nothing else should run on the machine meanwhile: the gain is the idle core.
+With ``--collect-beside`` the sequential loop is also timed while a collection-only run of the same method
+(``optim.updates_per_batch=0``) goes on in another process: how much a collector in a process of its own (no shared
+interpreter lock) would slow the updates.
 
 The per-iteration cost does not depend on what the policy has learned (a fixed number of decisions per iteration
 and updates per batch), so a briefly trained policy of the right size times as well as a finished one.
@@ -24,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -41,14 +46,31 @@ DEFAULT_METHOD = "mmada_return_to_go_noise_keep_lr1e4_gripper_ema"
 TIMES = ("iteration_s", "collect_s", "collect_ahead_s", "update_s")
 
 
-def run_once(args, overlap: bool, threads: int, run_dir: Path) -> dict:
-    """One fine-tuning run of ``args.iterations`` iterations; the medians of its per-iteration times."""
-    budget = args.iterations * args.steps_per_iteration
+def recipe_command(args, budget: int, run_dir: Path, overrides: list[str]) -> list[str]:
     cmd = command(args.method, args.task, args.seed, budget, run_dir, args.pretrained, eval_episodes=0,
                   eval_every=0, demos=args.demos)
-    cmd += ["demos.collect_episodes=0", f"num_threads={threads}", f"collector.overlap={str(overlap).lower()}",
-            f"checkpoint.interval={args.iterations + 1}", *args.override]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    return [*cmd, "demos.collect_episodes=0", *args.override, *overrides]  # the benchmark's own settings last
+
+
+def run_once(args, overlap: bool, threads: int, run_dir: Path, beside: bool = False) -> dict:
+    """One fine-tuning run of ``args.iterations`` iterations; the medians of its per-iteration times. With
+    ``beside``, a collection-only run of the same method (``optim.updates_per_batch=0``) goes on in another
+    process meanwhile: the load a collector in its own process would add."""
+    budget = args.iterations * args.steps_per_iteration
+    cmd = recipe_command(args, budget, run_dir, [f"num_threads={threads}", f"collector.overlap={str(overlap).lower()}",
+                                                 f"checkpoint.interval={args.iterations + 1}"])
+    collector = None
+    if beside:
+        collector = subprocess.Popen(
+            recipe_command(args, 10**9, run_dir.with_name(run_dir.name + "_collector"),
+                           ["num_threads=1", "optim.updates_per_batch=0", "checkpoint.interval=1000000"]),
+            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    finally:
+        if collector is not None:  # the recipe and its env workers
+            os.killpg(collector.pid, signal.SIGTERM)
+            collector.wait()
     if proc.returncode != 0:
         raise SystemExit(f"the fine-tuning run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
     logged = {name: [v for _, v in read_scalar(run_dir, f"time/{name}")][args.skip:] for name in TIMES}
@@ -57,7 +79,7 @@ def run_once(args, overlap: bool, threads: int, run_dir: Path) -> dict:
         raise SystemExit(f"{run_dir}: {len(steps)} iterations logged, none left after --skip {args.skip}; "
                          "raise --iterations.")
     per_step = (steps[-1] - steps[args.skip - 1]) / len(logged["iteration_s"]) if args.skip else steps[-1] / len(steps)
-    return {"overlap": overlap, "threads": threads, "iterations": len(logged["iteration_s"]),
+    return {"overlap": overlap, "threads": threads, "beside": beside, "iterations": len(logged["iteration_s"]),
             "env_steps_per_iteration": per_step,
             **{f"median_{name}": statistics.median(v) if v else None for name, v in logged.items()}}
 
@@ -100,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip", type=int, default=2, help="first iterations of each run not timed (default: 2)")
     parser.add_argument("--steps-per-iteration", type=int, default=200,
                         help="env steps per iteration (default: 200, the recipe's 40 decisions of 5 steps)")
+    parser.add_argument("--collect-beside", action="store_true",
+                        help="also time the sequential loop at each --threads value with a collection-only run of the "
+                             "method in another process meanwhile (what a collector process would cost the updates)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                         help="an extra recipe override for every run (repeatable)")
@@ -109,24 +134,30 @@ def main(argv: list[str] | None = None) -> int:
     if args.rounds < 1 or args.iterations <= args.skip or args.skip < 0 or min(args.threads) < 1:
         parser.error("need --rounds >= 1, 0 <= --skip < --iterations and --threads >= 1.")
 
-    configs = [(overlap, threads) for threads in args.threads for overlap in (False, True)]
+    configs = [(overlap, threads, beside) for threads in args.threads
+               for overlap, beside in ((False, False), (True, False), *(((False, True),) if args.collect_beside else ()))]
     runs: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="finetune_overlap_") as tmp:
         for r in range(args.rounds):
-            for overlap, threads in (configs if r % 2 == 0 else configs[::-1]):
-                run = run_once(args, overlap, threads, Path(tmp) / f"r{r}_o{int(overlap)}_t{threads}")
+            for overlap, threads, beside in (configs if r % 2 == 0 else configs[::-1]):
+                run = run_once(args, overlap, threads, Path(tmp) / f"r{r}_o{int(overlap)}_t{threads}_b{int(beside)}",
+                               beside)
                 runs.append({"round": r, **run})
-                print(f"round {r}: overlap={overlap} threads={threads}: {run['median_iteration_s']:.2f} s per iteration "
-                      f"(updates {run['median_update_s']:.2f} s, waited {run['median_collect_s']:.2f} s)", flush=True)
+                print(f"round {r}: overlap={overlap} threads={threads} beside={beside}: "
+                      f"{run['median_iteration_s']:.2f} s per iteration (updates {run['median_update_s']:.2f} s, "
+                      f"waited {run['median_collect_s']:.2f} s)", flush=True)
 
-    base = configs[0]
+    def same(run: dict, config: tuple) -> bool:
+        return (run["overlap"], run["threads"], run["beside"]) == config
+
     rows = []
-    for overlap, threads in configs:
-        mine = [x for x in runs if (x["overlap"], x["threads"]) == (overlap, threads)]
+    for overlap, threads, beside in configs:
+        mine = [x for x in runs if same(x, (overlap, threads, beside))]
         ratios = [m["median_iteration_s"] / b["median_iteration_s"] for m, b in
-                  zip(mine, [x for x in runs if (x["overlap"], x["threads"]) == base])]
-        row = {"label": f"{'overlapped' if overlap else 'sequential'}, {threads} thread{'s' if threads > 1 else ''}",
-               "overlap": overlap, "threads": threads, "ratio_to_first": statistics.median(ratios)}
+                  zip(mine, [x for x in runs if same(x, configs[0])])]
+        label = f"{'overlapped' if overlap else 'sequential'}, {threads} thread{'s' if threads > 1 else ''}"
+        row = {"label": label + (", beside a collection-only process" if beside else ""),
+               "overlap": overlap, "threads": threads, "beside": beside, "ratio_to_first": statistics.median(ratios)}
         for key in (f"median_{name}" for name in TIMES):
             values = [m[key] for m in mine if m[key] is not None]
             row[key] = statistics.median(values) if values else None

@@ -926,16 +926,27 @@ def test_overlapped_collection_with_execution_noise_repeats_bit_for_bit(toy_pret
     assert logs[0] == logs[1] and len(logs[0][1]) == 3
 
 
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError:  # the process ended meanwhile
+        return b""
+
+
 def test_overlap_benchmark_times_both_loops_on_real_fine_tuning_runs(toy_pretrain_run, pick_demos, tmp_path):
     bench = load_script("benchmarks/finetune_overlap.py", "finetune_overlap")
     assert bench.main(["--pretrained", str(toy_pretrain_run), "--demos", str(pick_demos), "--method",
                        "mmada_gae_noise_absorbing", "--iterations", "3", "--skip", "1", "--rounds", "1",
                        "--steps-per-iteration", "10", "--override", "collector.decisions_per_batch=2",
                        "--override", "optim.updates_per_batch=2", "--override", "env.max_episode_steps=10",
-                       "--out", str(tmp_path)]) == 0
+                       "--collect-beside", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "finetune_overlap.json").read_text())
     rows = {r["label"]: r for r in result["results"]}
-    assert list(rows) == ["sequential, 1 thread", "overlapped, 1 thread"]
+    assert list(rows) == ["sequential, 1 thread", "overlapped, 1 thread",
+                          "sequential, 1 thread, beside a collection-only process"]
+    assert [r["beside"] for r in result["runs"]] == [False, False, True]
+    # the collection-only run was stopped with its env workers when the timed run ended
+    assert not [p for p in Path("/proc").glob("[0-9]*/cmdline") if b"_b1_collector" in _read_bytes(p)]
     assert rows["sequential, 1 thread"]["ratio_to_first"] == 1.0 and rows["sequential, 1 thread"]["median_collect_ahead_s"] is None
     overlapped = rows["overlapped, 1 thread"]
     assert overlapped["median_collect_ahead_s"] > 0 and overlapped["median_iteration_s"] > 0
