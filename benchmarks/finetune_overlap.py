@@ -73,8 +73,9 @@ def run_once(args, overlap: bool, threads: int, run_dir: Path, beside: bool = Fa
             collector.wait()
     if proc.returncode != 0:
         raise SystemExit(f"the fine-tuning run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
-    logged = {name: [v for _, v in read_scalar(run_dir, f"time/{name}")][args.skip:] for name in TIMES}
-    steps = [s for s, _ in read_scalar(run_dir, "time/iteration_s")]
+    series = {name: read_scalar(run_dir, f"time/{name}") for name in TIMES}
+    logged = {name: [v for _, v in rows][args.skip:] for name, rows in series.items()}
+    steps = [s for s, _ in series["iteration_s"]]
     if not logged["iteration_s"]:
         raise SystemExit(f"{run_dir}: {len(steps)} iterations logged, none left after --skip {args.skip}; "
                          "raise --iterations.")

@@ -92,9 +92,8 @@ class CollectAhead:
 
     def close(self) -> None:
         """Finish the collection in flight (discarding its batch) and stop the thread."""
-        self.wait()
         self._future = None
-        self._pool.shutdown(wait=True)
+        self._pool.shutdown(wait=True)  # waits for the collection in flight
 
 
 def acting_copy(model: torch.nn.Module) -> torch.nn.Module:

@@ -101,6 +101,7 @@ from utils import (
     absorb_success,
     action_noise,
     check_config,
+    collects_ahead,
     critic_warmup_steps,
     decision_rows,
     ensemble_partners,
@@ -249,7 +250,7 @@ def main(cfg: DictConfig) -> None:
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps"
           + (f"; the critic alone learns for the first {warmup} env steps" if warmup else ""))
 
-    overlap = bool(cfg.collector.get("overlap", False))
+    overlap = collects_ahead(cfg)
     if overlap:  # a frozen copy acts in the collector's thread, its weights refreshed before each collection
         acting = acting_copy(model)
         acting.sampler = exploration_sampler(cfg, acting)

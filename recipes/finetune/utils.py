@@ -102,7 +102,7 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"optim.precision={cfg.optim.precision} computes the updates' log-probabilities in lower precision "
                          "than the sampler recorded them, so PPO's ratios would not start at 1: use algo=rwr or "
                          "optim.precision=fp32.")
-    if cfg.collector.get("overlap", False) and cfg.algo != "rwr":
+    if collects_ahead(cfg) and cfg.algo != "rwr":
         raise ValueError("collector.overlap=true collects each batch by the weights of one iteration earlier, so PPO's "
                          "ratios would not start at 1 on the fresh batch it trains on: use algo=rwr or "
                          "collector.overlap=false.")
@@ -153,6 +153,11 @@ def load_pretrained(cfg: DictConfig) -> MMaDAModel:
 def action_noise(cfg: DictConfig) -> float:
     """``collector.action_noise`` (0 when absent): the std of the Gaussian exploration around greedy chunks."""
     return float(cfg.collector.get("action_noise") or 0.0)
+
+
+def collects_ahead(cfg: DictConfig) -> bool:
+    """``collector.overlap`` (false when absent): the next batch is collected while this one's updates run."""
+    return bool(cfg.collector.get("overlap", False))
 
 
 def critic_warmup_steps(cfg: DictConfig) -> int:
