@@ -1,19 +1,20 @@
-"""Fine-tuning iterations with collection overlapped with the updates (``collector.overlap=true``) against the
-sequential loop, side by side on the same machine.
+"""Fine-tuning iterations with collection overlapped with the updates (``collector.overlap=thread`` or
+``process``) against the sequential loop, side by side on the same machine.
 
     python benchmarks/finetune_overlap.py --pretrained runs/pick100_cells4_w256_s0 \\
         --demos data/dart/PickCube-v1-fov45 --threads 1 2
 
 A fine-tuning iteration collects a batch (the simulator's worker process and the actor's decoding), then trains on
-it; each phase keeps about one core busy. With ``collector.overlap=true`` the next batch is collected in a
-background thread while the updates run (:class:`~mmada_rl.training.CollectAhead`). This runs the fine-tuning
+it; each phase keeps about one core busy. With ``collector.overlap=thread`` the next batch is collected in a
+background thread while the updates run (:class:`~mmada_rl.training.CollectAhead`), with ``process`` in a process
+of its own (:class:`~mmada_rl.training.CollectAheadProcess`). This runs the fine-tuning
 recipe exactly as ``benchmarks/compare/compare.py`` runs ``--method`` (default: the recipe's method), without
-evaluation, for ``--iterations`` iterations per run: every combination of ``collector.overlap`` (false, true) and
+evaluation, for ``--iterations`` iterations per run: every combination of ``--modes`` (``collector.overlap``) and
 ``--threads`` (the recipe's ``num_threads``), one run of each per round, their order reversed every other round,
 ``--rounds`` rounds. Each run's iteration time is the median of its ``time/iteration_s`` log (from the collection,
 or the wait for it, to the last update) after its first ``--skip`` iterations (start-up; the overlapped loop's
-first batch has nothing to overlap with). Ratios are to the sequential loop at the first ``--threads`` value, per
-round, then the median over rounds. Nothing else should run on the machine meanwhile: the gain is the idle core.
+first batch has nothing to overlap with). Ratios are to the first ``--modes`` value (the sequential loop by default)
+at the first ``--threads`` value, per round, then the median over rounds. Nothing else should run on the machine meanwhile: the gain is the idle core.
 With ``--collect-beside`` the sequential loop is also timed while a collection-only run of the same method
 (``optim.updates_per_batch=0``) goes on in another process: how much a collector in a process of its own (no shared
 interpreter lock) would slow the updates.
@@ -44,6 +45,7 @@ from pretraining import read_scalar  # noqa: E402
 
 DEFAULT_METHOD = "mmada_return_to_go_noise_keep_lr1e4_gripper_ema"
 TIMES = ("iteration_s", "collect_s", "collect_ahead_s", "update_s")
+MODES = {"false": "sequential", "thread": "overlapped", "process": "overlapped in a process"}  # collector.overlap
 
 
 def recipe_command(args, budget: int, run_dir: Path, overrides: list[str]) -> list[str]:
@@ -52,12 +54,12 @@ def recipe_command(args, budget: int, run_dir: Path, overrides: list[str]) -> li
     return [*cmd, "demos.collect_episodes=0", *args.override, *overrides]  # the benchmark's own settings last
 
 
-def run_once(args, overlap: bool, threads: int, run_dir: Path, beside: bool = False) -> dict:
+def run_once(args, overlap: str, threads: int, run_dir: Path, beside: bool = False) -> dict:
     """One fine-tuning run of ``args.iterations`` iterations; the medians of its per-iteration times. With
     ``beside``, a collection-only run of the same method (``optim.updates_per_batch=0``) goes on in another
     process meanwhile: the load a collector in its own process would add."""
     budget = args.iterations * args.steps_per_iteration
-    cmd = recipe_command(args, budget, run_dir, [f"num_threads={threads}", f"collector.overlap={str(overlap).lower()}",
+    cmd = recipe_command(args, budget, run_dir, [f"num_threads={threads}", f"collector.overlap={overlap}",
                                                  f"checkpoint.interval={args.iterations + 1}"])
     collector = None
     if beside:
@@ -118,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(m for m in METHODS if m.startswith("mmada")),
                         metavar="METHOD", help=f"a fine-tuning method of compare.py (default: {DEFAULT_METHOD})")
     parser.add_argument("--threads", type=int, nargs="+", default=[1], help="num_threads values to run (default: 1)")
+    parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES,
+                        help="collector.overlap values to run; the first is the ratios' baseline "
+                             "(default: false thread process)")
     parser.add_argument("--rounds", type=int, default=3, help="rounds of one run per configuration (default: 3)")
     parser.add_argument("--iterations", type=int, default=8, help="fine-tuning iterations per run (default: 8)")
     parser.add_argument("--skip", type=int, default=2, help="first iterations of each run not timed (default: 2)")
@@ -136,12 +141,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("need --rounds >= 1, 0 <= --skip < --iterations and --threads >= 1.")
 
     configs = [(overlap, threads, beside) for threads in args.threads
-               for overlap, beside in ((False, False), (True, False), *(((False, True),) if args.collect_beside else ()))]
+               for overlap, beside in (*((m, False) for m in args.modes),
+                                       *((("false", True),) if args.collect_beside else ()))]
     runs: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="finetune_overlap_") as tmp:
         for r in range(args.rounds):
             for overlap, threads, beside in (configs if r % 2 == 0 else configs[::-1]):
-                run = run_once(args, overlap, threads, Path(tmp) / f"r{r}_o{int(overlap)}_t{threads}_b{int(beside)}",
+                run = run_once(args, overlap, threads, Path(tmp) / f"r{r}_o{overlap}_t{threads}_b{int(beside)}",
                                beside)
                 runs.append({"round": r, **run})
                 print(f"round {r}: overlap={overlap} threads={threads} beside={beside}: "
@@ -156,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         mine = [x for x in runs if same(x, (overlap, threads, beside))]
         ratios = [m["median_iteration_s"] / b["median_iteration_s"] for m, b in
                   zip(mine, [x for x in runs if same(x, configs[0])])]
-        label = f"{'overlapped' if overlap else 'sequential'}, {threads} thread{'s' if threads > 1 else ''}"
+        label = f"{MODES[overlap]}, {threads} thread{'s' if threads > 1 else ''}"
         row = {"label": label + (", beside a collection-only process" if beside else ""),
                "overlap": overlap, "threads": threads, "beside": beside, "ratio_to_first": statistics.median(ratios)}
         for key in (f"median_{name}" for name in TIMES):

@@ -8,6 +8,7 @@ from mmada_rl.training.checkpoint import (
     save_checkpoint,
 )
 from mmada_rl.training.collect_ahead import CollectAhead, acting_copy
+from mmada_rl.training.collect_process import CollectAheadProcess, CollectorParts, CollectorProcessError
 from mmada_rl.training.ema import (
     WeightEMA,
     ema_applied,
@@ -23,6 +24,9 @@ __all__ = [
     "PRECISIONS",
     "Checkpoint",
     "CollectAhead",
+    "CollectAheadProcess",
+    "CollectorParts",
+    "CollectorProcessError",
     "WeightEMA",
     "acting_copy",
     "autocast",

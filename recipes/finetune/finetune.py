@@ -58,7 +58,10 @@ With ``collector.overlap=true`` (``algo=rwr``) the next batch is collected in a 
 iteration's updates run (:class:`~mmada_rl.training.CollectAhead`): a frozen copy of the policy acts, its weights
 copied from the model just before each collection starts, so each batch comes from the weights of one iteration
 earlier than the sequential loop's. Evaluations and checkpoints wait for the collection in flight;
-``time/collect_s`` is then the wait for the batch, ``time/collect_ahead_s`` the collection itself.
+``time/collect_s`` is then the wait for the batch, ``time/collect_ahead_s`` the collection itself. With
+``collector.overlap=process`` the collector, its env and the frozen copy live in a process of their own
+(:class:`~mmada_rl.training.CollectAheadProcess`), which is sent the weights and the exploration RNG's state with
+each request, so the learner and the actor no longer contend inside one process; only checkpoints wait.
 
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
@@ -85,6 +88,7 @@ from tqdm.auto import tqdm
 from mmada_rl.evaluation import evaluate
 from mmada_rl.training import (
     CollectAhead,
+    CollectAheadProcess,
     acting_copy,
     autocast,
     ema_applied,
@@ -98,6 +102,7 @@ from mmada_rl.training import (
 )
 from utils import (
     PREFIX,
+    ActingCollector,
     absorb_success,
     action_noise,
     check_config,
@@ -215,7 +220,7 @@ def main(cfg: DictConfig) -> None:
             print(f"{PREFIX} value network fitted to the demonstrations' returns: "
                   f"{cfg.value.pretrain_steps} steps, loss {value_loss:.3f} over the last tenth")
 
-    ahead: CollectAhead | None = None  # collector.overlap: the next batch is collected while the updates run
+    ahead: CollectAhead | CollectAheadProcess | None = None  # collector.overlap: the next batch is collected while the updates run
 
     def checkpoint() -> Path:
         if ahead is not None:  # the collection in flight draws from the noise RNG being saved: let it finish
@@ -251,17 +256,23 @@ def main(cfg: DictConfig) -> None:
           + (f"; the critic alone learns for the first {warmup} env steps" if warmup else ""))
 
     overlap = collects_ahead(cfg)
-    if overlap:  # a frozen copy acts in the collector's thread, its weights refreshed before each collection
-        acting = acting_copy(model)
-        acting.sampler = exploration_sampler(cfg, acting)
+    collector = None
+    if overlap == "process":  # the collector, its env and a frozen copy live in a process of their own
+        ahead = CollectAheadProcess(ActingCollector(cfg), weights=model.state_dict, generator=noise_generator,
+                                    num_threads=torch.get_num_threads())
     else:
-        acting = model
-    penv = make_policy_env_for(cfg, acting, noise_generator)
-    collector = make_collector(cfg, penv)
-    batches = iter(collector)
+        if overlap:  # a frozen copy acts in the collector's thread, its weights refreshed before each collection
+            acting = acting_copy(model)
+            acting.sampler = exploration_sampler(cfg, acting)
+        else:
+            acting = model
+        collector = make_collector(cfg, make_policy_env_for(cfg, acting, noise_generator))
+        batches = iter(collector)
+        if overlap:
+            ahead = CollectAhead(batches, sync=lambda: acting.load_state_dict(model.state_dict()))
     if overlap:
-        ahead = CollectAhead(batches, sync=lambda: acting.load_state_dict(model.state_dict()))
-        print(f"{PREFIX} collector.overlap=true: each batch is collected in a background thread while the previous "
+        print(f"{PREFIX} collector.overlap={overlap}: each batch is collected in a "
+              f"{'background thread' if overlap == 'thread' else 'process of its own'} while the previous "
               "batch's updates run, by the weights from before those updates")
     pbar = tqdm(total=total, initial=min(env_steps, total), desc=f"finetune {cfg.algo}", unit="step")
     try:
@@ -343,7 +354,7 @@ def main(cfg: DictConfig) -> None:
 
             crossed = eval_every and (env_steps // eval_every) > ((env_steps - steps) // eval_every)
             if int(cfg.eval.episodes) > 0 and (crossed or env_steps >= total):
-                if ahead is not None:  # evaluation sets the process-wide exploration type the collection reads
+                if overlap == "thread":  # evaluation sets the process-wide exploration type the collection reads
                     ahead.wait()
                 with ema_applied(ema):  # ema.enabled: the moving average is what is evaluated
                     history.append(run_eval(cfg, model, env_steps, updates, start))
@@ -359,7 +370,8 @@ def main(cfg: DictConfig) -> None:
         pbar.close()
         if ahead is not None:
             ahead.close()
-        collector.shutdown()
+        if collector is not None:
+            collector.shutdown()
 
     (run_dir / "eval_history.json").write_text(json.dumps(history, indent=2))
     final = {**(history[-1] if history else {}), "iterations": iteration, "config": config}

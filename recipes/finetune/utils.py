@@ -102,9 +102,10 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"optim.precision={cfg.optim.precision} computes the updates' log-probabilities in lower precision "
                          "than the sampler recorded them, so PPO's ratios would not start at 1: use algo=rwr or "
                          "optim.precision=fp32.")
-    if collects_ahead(cfg) and cfg.algo != "rwr":
-        raise ValueError("collector.overlap=true collects each batch by the weights of one iteration earlier, so PPO's "
-                         "ratios would not start at 1 on the fresh batch it trains on: use algo=rwr or "
+    overlap = collects_ahead(cfg)  # an unknown collector.overlap fails here
+    if overlap and cfg.algo != "rwr":
+        raise ValueError(f"collector.overlap={overlap} collects each batch by the weights of one iteration earlier, so "
+                         "PPO's ratios would not start at 1 on the fresh batch it trains on: use algo=rwr or "
                          "collector.overlap=false.")
     if cfg.algo == "ppo" and float(cfg.loss.ppo.demo_coef) < 0:
         raise ValueError(f"loss.ppo.demo_coef must be >= 0, got {cfg.loss.ppo.demo_coef!r}.")
@@ -155,9 +156,20 @@ def action_noise(cfg: DictConfig) -> float:
     return float(cfg.collector.get("action_noise") or 0.0)
 
 
-def collects_ahead(cfg: DictConfig) -> bool:
-    """``collector.overlap`` (false when absent): the next batch is collected while this one's updates run."""
-    return bool(cfg.collector.get("overlap", False))
+OVERLAP_MODES = ("thread", "process")
+
+
+def collects_ahead(cfg: DictConfig) -> str | None:
+    """``collector.overlap``: where the next batch is collected while this one's updates run, ``"thread"`` (also
+    ``true``) or ``"process"``; ``None`` for false (the default): collection and updates take turns."""
+    mode = cfg.collector.get("overlap", False)
+    if mode is False or mode is None:
+        return None
+    if mode is True:
+        return "thread"
+    if mode not in OVERLAP_MODES:
+        raise ValueError(f"collector.overlap={mode!r}; use false, thread (or true) or process.")
+    return str(mode)
 
 
 def critic_warmup_steps(cfg: DictConfig) -> int:
@@ -249,6 +261,30 @@ def make_policy_env_for(cfg: DictConfig, model: MMaDAModel, noise_generator: tor
     if action_noise(cfg) > 0:
         penv = penv._replace(policy=ExecutionNoise(penv.policy, action_noise(cfg), generator=noise_generator))
     return penv
+
+
+SAMPLING_SEED_OFFSET = 7919  # the collector process's torch RNG (sampled decoding): seed + this
+
+
+class ActingCollector:
+    """Builds, in the collector's own process (``collector.overlap=process``), what collects there: a frozen copy of
+    the pretrained policy with the exploration sampler, its noise RNG, the training env and TorchRL's collector.
+    The learner's weights and the RNG's state arrive with each batch request
+    (:class:`~mmada_rl.training.CollectAheadProcess`); tokens sampled at ``collector.temperature`` draw from the
+    process's own torch RNG, seeded from ``seed`` (not checkpointed: a resumed run draws anew). Picklable: it holds
+    the config only."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        self.cfg = cfg
+
+    def __call__(self) -> training.CollectorParts:
+        cfg = self.cfg
+        torch.manual_seed(int(cfg.seed) + SAMPLING_SEED_OFFSET)  # the sampled tokens' stream, not the learner's
+        acting = load_pretrained(cfg).eval().requires_grad_(False)
+        acting.sampler = exploration_sampler(cfg, acting)
+        generator = make_noise_generator(cfg)
+        collector = make_collector(cfg, make_policy_env_for(cfg, acting, generator))
+        return training.CollectorParts(iter(collector), acting, generator, collector.shutdown)
 
 
 def make_collector(cfg: DictConfig, penv: PolicyEnv) -> Collector:

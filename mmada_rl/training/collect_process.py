@@ -1,0 +1,214 @@
+"""Collect the next batch in a process of its own while the updates run in this one.
+
+:class:`~mmada_rl.training.CollectAhead` overlaps collection and updates with a
+thread, but on these CPUs the learner and the collecting thread contend inside
+one process (the actor decodes a chunk in many small ops, and TensorDict's
+bookkeeping is Python), so the updates run ~1.5x slower beside it.
+:class:`CollectAheadProcess` keeps :class:`CollectAhead`'s interface and its
+one-batch-ahead schedule, but the collector (TorchRL's ``Collector``, its env
+and a copy of the policy) lives in a spawned process:
+
+* :meth:`~CollectAheadProcess.start` sends the learner's current weights (a
+  ``state_dict``) and the state of the exploration RNG; the process loads both
+  and collects one batch. Weights change only between batches, never during one.
+* :meth:`~CollectAheadProcess.take` returns the batch, and the RNG state the
+  collection left is written back into the caller's generator, so a checkpoint
+  of that generator (after :meth:`~CollectAheadProcess.wait`) is the one a
+  thread, or a sequential loop, would have saved: given the same factory, a run
+  draws the same numbers in either.
+* An error raised in the process (an env worker that failed) is raised by
+  :meth:`~CollectAheadProcess.take` as :class:`CollectorProcessError`, with the
+  original type and message; a process that dies raises it too.
+
+Messages are pickled by hand (``pickle``, not torch's shared-memory reductions
+that ``multiprocessing`` would use): a few tens of MB per iteration, copied, with no
+file descriptor or shared-memory segment left behind per batch.
+
+TorchRL's ``AsyncCollector`` runs a collector in another process too, but its
+weight-sync schemes write the new weights into shared memory (or apply them in
+a receiver thread) while a batch may be in progress, and it has no place for
+the exploration RNG's state; one request per batch keeps both exact.
+
+Examples (``factory``: a picklable callable returning :class:`CollectorParts`, see the tests):
+    >>> ahead = CollectAheadProcess(factory, weights=model.state_dict, generator=noise_rng)  # doctest: +SKIP
+    >>> batch, seconds = ahead.take()    # doctest: +SKIP
+    >>> ahead.start()                    # doctest: +SKIP  # the next batch, while this one trains
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import pickle
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+__all__ = ["CollectAheadProcess", "CollectorParts", "CollectorProcessError"]
+
+
+@dataclass
+class CollectorParts:
+    """What a factory builds in the collector's process.
+
+    Attributes:
+        batches: the batches, e.g. ``iter(collector)``.
+        policy: the module whose ``load_state_dict`` takes the learner's weights before each batch.
+        generator: the RNG the collection draws from (its state travels with each batch), or ``None``.
+        close: called when the process stops (e.g. ``collector.shutdown``), or ``None``.
+    """
+
+    batches: Iterator
+    policy: torch.nn.Module
+    generator: torch.Generator | None = None
+    close: Callable[[], None] | None = None
+
+
+class CollectorProcessError(RuntimeError):
+    """An error raised while collecting in the collector's process (or that process's end)."""
+
+
+def _send(conn, message: Any) -> None:
+    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _error(err: BaseException) -> tuple[str, str]:
+    return "error", f"{type(err).__name__}: {err}\n--- in the collector process ---\n{traceback.format_exc()}"
+
+
+def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> None:
+    """The collector process: build the parts, then one batch per request until ``None`` or the pipe closes."""
+    torch.set_num_threads(num_threads)
+    try:
+        parts = factory()
+    except Exception as err:
+        _send(conn, _error(err))
+        return
+    _send(conn, ("ready", None))
+    try:
+        while True:
+            try:
+                request = pickle.loads(conn.recv_bytes())
+            except EOFError:  # the learner's process is gone
+                break
+            if request is None:
+                break
+            weights, rng_state = request
+            try:
+                parts.policy.load_state_dict(weights)
+                if parts.generator is not None and rng_state is not None:
+                    parts.generator.set_state(rng_state)
+                start = time.perf_counter()
+                batch = next(parts.batches)
+                seconds = time.perf_counter() - start
+                state = parts.generator.get_state() if parts.generator is not None else None
+                _send(conn, ("batch", (batch, seconds, state)))
+            except Exception as err:
+                _send(conn, _error(err))
+    finally:
+        if parts.close is not None:
+            parts.close()
+
+
+class CollectAheadProcess:
+    """Runs a collector one batch ahead of the caller, in a spawned process.
+
+    Args:
+        factory: a picklable callable that builds the :class:`CollectorParts` in the new process.
+        weights: returns the learner's weights (a ``state_dict``) when a collection starts.
+        generator: the caller's exploration RNG: its state is sent with each request and
+            replaced by the state the collection left when the batch arrives.
+        num_threads: torch threads in the collector's process.
+        start_timeout: seconds to wait for ``factory`` to finish.
+
+    Raises:
+        CollectorProcessError: if ``factory`` raises (with its message) or the process does not start.
+    """
+
+    def __init__(self, factory: Callable[[], CollectorParts], weights: Callable[[], dict],
+                 generator: torch.Generator | None = None, num_threads: int = 1, start_timeout: float = 600.0) -> None:
+        ctx = mp.get_context("spawn")  # fork deadlocks SAPIEN, and would copy the learner's threads
+        self._conn, child = ctx.Pipe()
+        self._weights, self._generator = weights, generator
+        self._proc = ctx.Process(target=_serve, args=(child, factory, int(num_threads)), name="collect-ahead", daemon=False)
+        self._proc.start()
+        child.close()
+        self._in_flight, self._result = False, None
+        if not self._conn.poll(start_timeout):
+            self._proc.terminate()
+            raise CollectorProcessError(f"the collector process did not start within {start_timeout:.0f} s")
+        kind, payload = self._receive()
+        if kind == "error":
+            self._proc.join()
+            raise CollectorProcessError(f"building the collector failed: {payload}")
+
+    @property
+    def pid(self) -> int | None:
+        """The collector process's id."""
+        return self._proc.pid
+
+    @property
+    def in_flight(self) -> bool:
+        """Whether a batch is being (or has been) collected and not yet taken."""
+        return self._in_flight
+
+    def _receive(self) -> tuple[str, Any]:
+        try:
+            return pickle.loads(self._conn.recv_bytes())
+        except (EOFError, ConnectionError, OSError) as err:
+            self._proc.join(timeout=10)
+            raise CollectorProcessError(f"the collector process ended (exit code {self._proc.exitcode}) "
+                                        f"without sending its batch: {type(err).__name__}") from err
+
+    def start(self) -> None:
+        """Send the learner's weights (and the RNG state); the process starts collecting the next batch."""
+        if self._in_flight:
+            raise RuntimeError("a batch is already being collected: take() it before starting another")
+        state = self._generator.get_state() if self._generator is not None else None
+        _send(self._conn, (self._weights(), state))
+        self._in_flight = True
+
+    def wait(self) -> None:
+        """Block until the batch in flight (if any) has arrived; its result, or error, waits for :meth:`take`.
+        The caller's generator then holds the state the collection left."""
+        if self._in_flight and self._result is None:
+            try:
+                self._result = self._receive()
+            except CollectorProcessError as err:
+                self._result = ("lost", err)
+            if self._result[0] == "batch" and self._generator is not None and self._result[1][2] is not None:
+                self._generator.set_state(self._result[1][2])
+
+    def take(self) -> tuple[Any, float]:
+        """The next batch and the seconds its collection took in the process (not the wait, which may be shorter).
+
+        Starts a collection first if none is in flight (e.g. the first). Raises
+        :class:`CollectorProcessError` if the collection failed. Call :meth:`start` afterwards for the next.
+        """
+        if not self._in_flight:
+            self.start()
+        self.wait()
+        (kind, payload), self._result, self._in_flight = self._result, None, False
+        if kind == "lost":
+            raise payload
+        if kind == "error":
+            raise CollectorProcessError(payload)
+        batch, seconds, _ = payload
+        return batch, seconds
+
+    def close(self, timeout: float = 60.0) -> None:
+        """Finish the collection in flight (discarding its batch), stop the process and its env."""
+        if self._proc.is_alive():
+            self.wait()
+            try:
+                _send(self._conn, None)
+            except (BrokenPipeError, OSError):
+                pass
+            self._proc.join(timeout)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join()
+        self._in_flight, self._result = False, None
+        self._conn.close()
