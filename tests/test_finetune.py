@@ -890,18 +890,22 @@ def _logged(run_dir: Path, name: str) -> list[tuple[str, str]]:
     return [tuple(row.split(",")[:2]) for row in rows]
 
 
-def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
-    """collector.overlap=true: the same run as ``rwr_run`` with each next batch collected during the updates."""
+@pytest.mark.parametrize("overlap, where", [("true", "a background thread"), ("process", "a process of its own")])
+def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run, toy_pretrain_run, pick_demos, tmp_path,
+                                                                       overlap, where):
+    """collector.overlap: the same run as ``rwr_run`` with each next batch collected during the updates."""
     run_dir = tmp_path / "overlap"
-    args = [f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", "collector.overlap=true"]
+    args = [f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", f"collector.overlap={overlap}"]
     proc = run_recipe(*args, *COMMON)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "collector.overlap=true: each batch is collected in a background thread" in proc.stdout
+    assert f"each batch is collected in {where} while the previous batch's updates run" in proc.stdout
     history = json.loads((run_dir / "eval_history.json").read_text())
     assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
-    # the first batch is collected before any update, by the pretrained weights and the same RNG draws as the
-    # sequential run's; later ones by weights one iteration older than the sequential run's
-    assert _logged(run_dir, "chunk_reward")[0] == _logged(rwr_run, "chunk_reward")[0]
+    if overlap == "true":
+        # the first batch is collected before any update, by the pretrained weights and the same RNG draws as the
+        # sequential run's; later ones by weights one iteration older than the sequential run's (a process samples
+        # its tokens from its own RNG)
+        assert _logged(run_dir, "chunk_reward")[0] == _logged(rwr_run, "chunk_reward")[0]
     timing = run_dir / "logs" / "scalars" / "time"
     collected = [float(row.split(",")[1]) for row in (timing / "collect_ahead_s.csv").read_text().split()]
     iterations = [float(row.split(",")[1]) for row in (timing / "iteration_s.csv").read_text().split()]
@@ -913,12 +917,14 @@ def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run,
     assert "iteration 3, 30 env steps" in resumed.stdout and "done: 50 env steps, 10 updates" in resumed.stdout
 
 
-def test_overlapped_collection_with_execution_noise_repeats_bit_for_bit(toy_pretrain_run, pick_demos, tmp_path):
-    """Greedy chunks with their own noise RNG draw nothing from the RNG the updates use: the overlapped run repeats."""
+def test_overlapped_collection_with_execution_noise_is_the_same_run_in_a_thread_and_in_a_process(
+        toy_pretrain_run, pick_demos, tmp_path):
+    """Greedy chunks with their own noise RNG draw nothing from the RNG the updates use, and the collector's process
+    continues the learner's noise RNG: the run in a thread and in a process are the same, bit for bit."""
     logs = []
-    for name in ("a", "b"):
+    for name in ("thread", "process"):
         proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
-                          *COMMON, "eval.episodes=0", "collector.overlap=true", "collector.action_noise=0.1",
+                          *COMMON, "eval.episodes=0", f"collector.overlap={name}", "collector.action_noise=0.1",
                           "advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
                           "loss.rwr.standardize_advantage=true")
         assert proc.returncode == 0, proc.stderr[-3000:]
@@ -939,16 +945,16 @@ def test_overlap_benchmark_times_both_loops_on_real_fine_tuning_runs(toy_pretrai
                        "mmada_gae_noise_absorbing", "--iterations", "3", "--skip", "1", "--rounds", "1",
                        "--steps-per-iteration", "10", "--override", "collector.decisions_per_batch=2",
                        "--override", "optim.updates_per_batch=2", "--override", "env.max_episode_steps=10",
-                       "--collect-beside", "--out", str(tmp_path)]) == 0
+                       "--modes", "false", "process", "--collect-beside", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "finetune_overlap.json").read_text())
     rows = {r["label"]: r for r in result["results"]}
-    assert list(rows) == ["sequential, 1 thread", "overlapped, 1 thread",
+    assert list(rows) == ["sequential, 1 thread", "overlapped in a process, 1 thread",
                           "sequential, 1 thread, beside a collection-only process"]
     assert [r["beside"] for r in result["runs"]] == [False, False, True]
     # the collection-only run was stopped with its env workers when the timed run ended
     assert not [p for p in Path("/proc").glob("[0-9]*/cmdline") if b"_b1_collector" in _read_bytes(p)]
     assert rows["sequential, 1 thread"]["ratio_to_first"] == 1.0 and rows["sequential, 1 thread"]["median_collect_ahead_s"] is None
-    overlapped = rows["overlapped, 1 thread"]
+    overlapped = rows["overlapped in a process, 1 thread"]
     assert overlapped["median_collect_ahead_s"] > 0 and overlapped["median_iteration_s"] > 0
     assert all(run["iterations"] == 2 and run["env_steps_per_iteration"] == 10 for run in result["runs"])
     assert (tmp_path / "finetune_overlap.png").stat().st_size > 0
@@ -1175,13 +1181,13 @@ def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the
     assert len(saved_online_buffer(run_dir)) == 2  # collector.decisions_per_batch of the one iteration after the warm-up
 
 
-@pytest.mark.parametrize("overlap", [False, True])
+@pytest.mark.parametrize("overlap", ["false", "true", "process"])
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path,
                                                                              overlap):
     run_dir = tmp_path / "failing"
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
                       "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2",
-                      f"collector.overlap={str(overlap).lower()}")
+                      f"collector.overlap={overlap}")
     assert proc.returncode != 0
     assert "collection failed after" in proc.stderr and "injected env failure" in proc.stderr
     assert "checkpoint.resume=true" in proc.stderr
@@ -1216,6 +1222,8 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["optim.precision=fp16"], "precision must be one of fp32, bf16, got 'fp16'"),
     (["algo=ppo", "optim.precision=bf16"], "so PPO's ratios would not start at 1"),
     (["algo=ppo", "collector.overlap=true"], "so PPO's ratios would not start at 1 on the fresh batch"),
+    (["algo=ppo", "collector.overlap=process"], "collector.overlap=process collects each batch by the weights of one"),
+    (["collector.overlap=sideways"], "collector.overlap='sideways'; use false, thread (or true) or process."),
 ])
 def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
