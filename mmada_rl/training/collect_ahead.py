@@ -17,6 +17,9 @@ two threads run in parallel. Anything that must not run beside a collection
 (an evaluation that sets the process-wide exploration type, a checkpoint of an
 RNG the collection draws from) calls :meth:`CollectAhead.wait` first. An error
 raised while collecting is raised again by :meth:`CollectAhead.take`.
+:class:`~mmada_rl.training.CollectAheadProcess` keeps this interface with the
+collector in a process of its own, where the learner and the actor do not
+contend for one interpreter.
 
 Examples:
     >>> synced = []
