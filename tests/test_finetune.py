@@ -1251,6 +1251,11 @@ def test_comparison_benchmark_builds_resumable_commands_and_reports_real_runs(rw
     keep = compare.command("mmada_gae_noise_privileged_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500)
     assert set(privileged) - set(keep) == off and set(keep) <= set(privileged)  # those three alone differ
     assert not off & set(compare.command("mmada_demos_only_keep", "PickCube-v1", 0, 1000, out, "x", 5, 500))
+    # the method run with its collector in a process of its own differs from it in that override alone
+    headline = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "PickCube-v1", 0, 1000, out, "x", 5, 500)
+    ahead = compare.command("mmada_return_to_go_noise_keep_lr1e4_gripper_ema_process", "PickCube-v1", 0, 1000, out, "x",
+                            5, 500)
+    assert [a for a in ahead if a != "collector.overlap=process"] == headline and len(ahead) == len(headline) + 1
     # a method's no-RL control differs from it in the demonstrations' share of each minibatch alone; its smaller online
     # share, its longer moving average, its lower learning rate and its smaller exploration noise differ from it in that
     # share, the EMA's exponent, the rate or the noise alone (the override added, and the one it replaces where it

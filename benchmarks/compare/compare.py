@@ -234,6 +234,14 @@ METHODS = {
                                                                  "and 4 online rows)", "rgb+proprio",
                                                                  [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA,
                                                                   "demos.ratio=0.75"], True),
+    "mmada_return_to_go_noise_keep_lr1e4_gripper_ema_process": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema "
+                                                                "with each next batch collected during the updates, "
+                                                                "in a process of its own (ours: "
+                                                                "collector.overlap=process, each batch from the "
+                                                                "weights one iteration behind; 0.59x the iteration "
+                                                                "time at 1 thread)", "rgb+proprio",
+                                                                [*_RETURN_TO_GO_KEEP_LR1E4_GRIPPER_EMA,
+                                                                 "collector.overlap=process"], True),
     "mmada_return_to_go_noise_keep_gripper_ema": ("mmada_return_to_go_noise_keep_lr1e4_gripper_ema at the recipe's "
                                                   "learning rate (ours: optim.lr=3e-5 instead of 1e-4)", "rgb+proprio",
                                                   _RETURN_TO_GO_KEEP_GRIPPER_EMA, True),

@@ -32,7 +32,7 @@ the exploration RNG's state; one request per batch keeps both exact.
 Examples (``factory``: a picklable callable returning :class:`CollectorParts`, see the tests):
     >>> ahead = CollectAheadProcess(factory, weights=model.state_dict, generator=noise_rng)  # doctest: +SKIP
     >>> batch, seconds = ahead.take()    # doctest: +SKIP
-    >>> ahead.start()                    # doctest: +SKIP  # the next batch, while this one trains
+    >>> ahead.start()                    # the next batch, while this one trains  # doctest: +SKIP
 """
 from __future__ import annotations
 
