@@ -178,8 +178,9 @@ class CollectAheadProcess:
                 self._result = self._receive()
             except CollectorProcessError as err:
                 self._result = ("lost", err)
-            if self._result[0] == "batch" and self._generator is not None and self._result[1][2] is not None:
-                self._generator.set_state(self._result[1][2])
+            kind, payload = self._result
+            if kind == "batch" and self._generator is not None and payload[2] is not None:  # (batch, seconds, rng)
+                self._generator.set_state(payload[2])
 
     def take(self) -> tuple[Any, float]:
         """The next batch and the seconds its collection took in the process (not the wait, which may be shorter).

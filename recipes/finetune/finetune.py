@@ -89,7 +89,6 @@ from mmada_rl.evaluation import evaluate
 from mmada_rl.training import (
     CollectAhead,
     CollectAheadProcess,
-    acting_copy,
     autocast,
     ema_applied,
     ema_checkpointed,
@@ -105,6 +104,7 @@ from utils import (
     ActingCollector,
     absorb_success,
     action_noise,
+    acting_policy,
     check_config,
     collects_ahead,
     critic_warmup_steps,
@@ -261,11 +261,8 @@ def main(cfg: DictConfig) -> None:
         ahead = CollectAheadProcess(ActingCollector(cfg), weights=model.state_dict, generator=noise_generator,
                                     num_threads=torch.get_num_threads())
     else:
-        if overlap:  # a frozen copy acts in the collector's thread, its weights refreshed before each collection
-            acting = acting_copy(model)
-            acting.sampler = exploration_sampler(cfg, acting)
-        else:
-            acting = model
+        # with overlap a frozen copy acts in the collector's thread, its weights refreshed before each collection
+        acting = acting_policy(cfg, model) if overlap else model
         collector = make_collector(cfg, make_policy_env_for(cfg, acting, noise_generator))
         batches = iter(collector)
         if overlap:
@@ -299,7 +296,7 @@ def main(cfg: DictConfig) -> None:
             collect_s = time.perf_counter() - t0  # with collector.overlap: the wait for the batch collected ahead
             metrics = {"train/chunk_reward": float(batch.get(("next", "reward")).mean()), "time/collect_s": collect_s}
             if collected_s is not None:
-                metrics["time/collect_ahead_s"] = collected_s  # the collection's own duration in its thread
+                metrics["time/collect_ahead_s"] = collected_s  # the collection's own duration in its thread or process
             ended = batch.get(("next", "done")).reshape(-1)
             if ended.any():  # episodes that ended in this batch; success terminates them (success_once)
                 metrics["train/success_rate"] = float(batch.get(("next", SUCCESS_KEY)).reshape(-1)[ended].float().mean())

@@ -263,6 +263,14 @@ def make_policy_env_for(cfg: DictConfig, model: MMaDAModel, noise_generator: tor
     return penv
 
 
+def acting_policy(cfg: DictConfig, model: MMaDAModel) -> MMaDAModel:
+    """What acts while ``model`` trains (``collector.overlap``): a frozen copy of it in eval mode
+    (:func:`~mmada_rl.training.acting_copy`) with the exploration sampler."""
+    acting = training.acting_copy(model)
+    acting.sampler = exploration_sampler(cfg, acting)
+    return acting
+
+
 SAMPLING_SEED_OFFSET = 7919  # the collector process's torch RNG (sampled decoding): seed + this
 
 
@@ -280,8 +288,7 @@ class ActingCollector:
     def __call__(self) -> training.CollectorParts:
         cfg = self.cfg
         torch.manual_seed(int(cfg.seed) + SAMPLING_SEED_OFFSET)  # the sampled tokens' stream, not the learner's
-        acting = load_pretrained(cfg).eval().requires_grad_(False)
-        acting.sampler = exploration_sampler(cfg, acting)
+        acting = acting_policy(cfg, load_pretrained(cfg))
         generator = make_noise_generator(cfg)
         collector = make_collector(cfg, make_policy_env_for(cfg, acting, generator))
         return training.CollectorParts(iter(collector), acting, generator, collector.shutdown)
