@@ -13,7 +13,8 @@ from mmada_rl.training import CollectAheadProcess, CollectorParts, CollectorProc
 
 
 class _Batches:
-    """Each batch: the weight it was collected with and one number drawn from the collection's RNG. Batch ``i > 0``
+    """Each batch: the weight it was collected with, one number drawn from the collection's own RNG and one from the
+    process's global torch RNG (where a policy samples its tokens). Batch ``i > 0``
     is only collected once ``marker(i)`` exists, which the caller creates while it updates on batch ``i - 1``."""
 
     def __init__(self, policy: torch.nn.Module, generator: torch.Generator, markers: Path | None, fail_at: int | None):
@@ -33,7 +34,7 @@ class _Batches:
                     raise AssertionError(f"batch {i} was not collected beside the update")
                 time.sleep(0.01)
         return {"weight": float(self.policy.weight), "draw": torch.rand(1, generator=self.generator),
-                "pid": os.getpid()}
+                "global_draw": torch.rand(1), "pid": os.getpid()}
 
 
 class _Factory:
@@ -47,15 +48,22 @@ class _Factory:
             raise ValueError("no such task")
         policy = torch.nn.Linear(1, 1, bias=False).requires_grad_(False)
         generator = torch.Generator().manual_seed(12345)  # replaced by the caller's state before each batch
-        return CollectorParts(_Batches(policy, generator, self.markers, self.fail_at), policy, generator)
+        return CollectorParts(_Batches(policy, generator, self.markers, self.fail_at), policy,
+                              {"noise": generator, "sampling": torch.default_generator})
+
+
+def _draws(seed: int, n: int) -> list[float]:
+    expected = torch.Generator().manual_seed(seed)
+    return [float(torch.rand(1, generator=expected)) for _ in range(n)]
 
 
 def test_the_next_batch_is_collected_in_another_process_during_the_updates_by_the_weights_from_before_them(tmp_path):
     learner = torch.nn.Linear(1, 1, bias=False)
     with torch.no_grad():
         learner.weight.fill_(0.0)
-    generator = torch.Generator().manual_seed(0)
-    ahead = CollectAheadProcess(_Factory(markers=tmp_path), weights=learner.state_dict, generator=generator)
+    generator, sampling = torch.Generator().manual_seed(0), torch.Generator().manual_seed(1)
+    ahead = CollectAheadProcess(_Factory(markers=tmp_path), weights=learner.state_dict,
+                                generators={"noise": generator, "sampling": sampling})
     collected = []
     for i in range(3):
         batch, seconds = ahead.take()
@@ -71,15 +79,39 @@ def test_the_next_batch_is_collected_in_another_process_during_the_updates_by_th
     assert {b["pid"] for b in collected} != {os.getpid()}
     # a sequential loop collects batch i by the weights after i updates; here batch i + 1 comes from those after i - 1
     assert [b["weight"] for b in collected] == [0.0, 0.0, 1.0]
-    # the draws continue the caller's RNG stream, and the caller's generator holds the state after them
-    expected = torch.Generator().manual_seed(0)
-    assert [float(b["draw"]) for b in collected] == [float(torch.rand(1, generator=expected)) for _ in range(3)]
-    assert torch.equal(generator.get_state(), expected.get_state())
+    # the draws continue the caller's RNG streams (its own generator's, and the process's global one's from the
+    # caller's "sampling"), and the caller's generators hold the states after them
+    assert [float(b["draw"]) for b in collected] == _draws(0, 3)
+    assert [float(b["global_draw"]) for b in collected] == _draws(1, 3)
+    expected = torch.Generator().manual_seed(1)
+    for _ in range(3):
+        torch.rand(1, generator=expected)
+    assert torch.equal(sampling.get_state(), expected.get_state())
+
+
+def test_a_new_process_continues_the_draws_from_the_states_the_caller_saved():
+    """What a checkpoint saves of the caller's generators and a resumed run restores: a new collector process
+    draws the numbers the first would have drawn next, in its own generator and in its global RNG alike."""
+    weights = torch.nn.Linear(1, 1, bias=False).state_dict
+    generators = {"noise": torch.Generator().manual_seed(0), "sampling": torch.Generator().manual_seed(1)}
+    first = CollectAheadProcess(_Factory(), weights=weights, generators=generators)
+    before = [first.take()[0] for _ in range(2)]
+    first.close()
+    saved = {name: g.get_state() for name, g in generators.items()}
+    restored = {name: torch.Generator() for name in saved}
+    for name, g in restored.items():
+        g.set_state(saved[name])
+    second = CollectAheadProcess(_Factory(), weights=weights, generators=restored)
+    after = second.take()[0]
+    second.close()
+    assert [float(b["draw"]) for b in [*before, after]] == _draws(0, 3)
+    assert [float(b["global_draw"]) for b in [*before, after]] == _draws(1, 3)
 
 
 def test_wait_brings_the_rng_state_of_the_batch_in_flight_before_it_is_taken(tmp_path):
     generator = torch.Generator().manual_seed(3)
-    ahead = CollectAheadProcess(_Factory(), weights=torch.nn.Linear(1, 1, bias=False).state_dict, generator=generator)
+    ahead = CollectAheadProcess(_Factory(), weights=torch.nn.Linear(1, 1, bias=False).state_dict,
+                                generators={"noise": generator})
     ahead.start()
     ahead.wait()  # e.g. before a checkpoint saves the generator
     expected = torch.Generator().manual_seed(3)

@@ -27,7 +27,7 @@ from mmada_rl.objectives.masked_diffusion import ACTION_SEGMENT
 from mmada_rl.objectives.advantages import DecisionIndexBaseline, group_relative_advantages, returns_to_go
 from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAModel, make_policy_env
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
-from mmada_rl.training.checkpoint import latest_checkpoint, load_checkpoint
+from mmada_rl.training.checkpoint import TRAINER_FILE, latest_checkpoint, load_checkpoint
 from checkpoint_checks import check_average_beside_own_weights, weights
 from script_loader import load_script
 
@@ -871,17 +871,39 @@ def test_seed_report_reads_a_fine_tuning_run_from_its_eval_history(rwr_run, tmp_
 
 
 def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pick_demos, tmp_path):
-    import shutil
-
+    """Stopped after two iterations and resumed to the budget, the run is ``rwr_run`` bit for bit: the weights,
+    optimizers, RNGs and online buffer are restored, and each iteration is one whole episode, so the one state not
+    saved, the simulator's, is a fresh episode either way, from the initial state after those the first part began,
+    as in the uninterrupted run (not the run's first one again)."""
     resumed = tmp_path / "resumed"
-    (resumed / "checkpoints").mkdir(parents=True)
-    shutil.copytree(rwr_run / "checkpoints" / "step_00000002", resumed / "checkpoints" / "step_00000002")
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={resumed}", f"demos.dir={pick_demos}", *COMMON,
+    args = [f"pretrained={toy_pretrain_run}", f"run_dir={resumed}", f"demos.dir={pick_demos}", *COMMON]
+    first = run_recipe(*args, "collector.total_env_steps=20")
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert _checkpoint_extra(resumed / "checkpoints" / "step_00000002")["initial_states_begun"] == 2
+    proc = run_recipe(*args, "checkpoint.resume=true")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "iteration 2, 20 env steps, 4 online rows; training episodes continue from initial state 2" in proc.stdout
+    history = json.loads((resumed / "eval_history.json").read_text())
+    assert [h["env_steps"] for h in history] == [0, 20, 30] and history[-1]["updates"] == 6
+    for key in ("chunk_reward", "loss", "grad_norm"):
+        assert _logged(resumed, key) == _logged(rwr_run, key)
+    assert _checkpoint_extra(resumed / "checkpoints" / "step_00000003")["initial_states_begun"] == 3
+
+    older = tmp_path / "older"  # a checkpoint from before the count was saved: the envs start again, as it says
+    shutil.copytree(resumed / "checkpoints" / "step_00000002", older / "checkpoints" / "step_00000002")
+    state_file = older / "checkpoints" / "step_00000002" / TRAINER_FILE
+    state = torch.load(state_file, weights_only=False)
+    del state["extra"]["initial_states_begun"]
+    torch.save(state, state_file)
+    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={older}", f"demos.dir={pick_demos}", *COMMON,
                       "checkpoint.resume=true")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "iteration 2, 20 env steps" in proc.stdout
-    history = json.loads((resumed / "eval_history.json").read_text())
-    assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
+    assert "they start again from env.train_seed" in proc.stdout
+
+
+def _checkpoint_extra(path: Path) -> dict:
+    """What a fine-tuning checkpoint keeps beside the weights: counters, history, initial states begun."""
+    return load_checkpoint(path).trainer_state["extra"]
 
 
 def _logged(run_dir: Path, name: str) -> list[tuple[str, str]]:
@@ -911,10 +933,17 @@ def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run,
     iterations = [float(row.split(",")[1]) for row in (timing / "iteration_s.csv").read_text().split()]
     assert len(collected) == len(iterations) == 3 and all(s > 0 for s in collected + iterations)
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir())[-1] == "step_00000003"
+    rng = load_checkpoint(run_dir / "checkpoints" / "step_00000003").trainer_state["rng"]["generators"]
+    if overlap == "process":  # the tokens sampled in the collector's process: their RNG state came back and is saved
+        fresh = recipe_utils().make_sampling_generator(OmegaConf.create({"seed": 0}))
+        assert not torch.equal(rng["sampling"], fresh.get_state())
+    else:  # they draw from the learner's own torch RNG, saved as "torch"
+        assert "sampling" not in rng
     resumed = run_recipe(*args, *COMMON[:3], "collector.total_env_steps=50", "collector.decisions_per_batch=2",
                          "checkpoint.interval=1", "checkpoint.resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "iteration 3, 30 env steps" in resumed.stdout and "done: 50 env steps, 10 updates" in resumed.stdout
+    assert "training episodes continue from initial state 3" in resumed.stdout
 
 
 def test_overlapped_collection_with_execution_noise_is_the_same_run_in_a_thread_and_in_a_process(

@@ -9,13 +9,15 @@ one-batch-ahead schedule, but the collector (TorchRL's ``Collector``, its env
 and a copy of the policy) lives in a spawned process:
 
 * :meth:`~CollectAheadProcess.start` sends the learner's current weights (a
-  ``state_dict``) and the state of the exploration RNG; the process loads both
+  ``state_dict``) and the states of the collection's RNGs (named generators,
+  e.g. the execution noise's and the sampled tokens'); the process loads them
   and collects one batch. Weights change only between batches, never during one.
-* :meth:`~CollectAheadProcess.take` returns the batch, and the RNG state the
-  collection left is written back into the caller's generator, so a checkpoint
-  of that generator (after :meth:`~CollectAheadProcess.wait`) is the one a
-  thread, or a sequential loop, would have saved: given the same factory, a run
-  draws the same numbers in either.
+* :meth:`~CollectAheadProcess.take` returns the batch, and the RNG states the
+  collection left are written back into the caller's generators of the same
+  names, so a checkpoint of them (after :meth:`~CollectAheadProcess.wait`) is
+  the one a thread, or a sequential loop, would have saved: given the same
+  factory, a run draws the same numbers in either, and a run resumed from a
+  checkpoint continues the draws instead of starting them again.
 * An error raised in the process (an env worker that failed) is raised by
   :meth:`~CollectAheadProcess.take` as :class:`CollectorProcessError`, with the
   original type and message; a process that dies raises it too.
@@ -27,10 +29,10 @@ file descriptor or shared-memory segment left behind per batch.
 TorchRL's ``AsyncCollector`` runs a collector in another process too, but its
 weight-sync schemes write the new weights into shared memory (or apply them in
 a receiver thread) while a batch may be in progress, and it has no place for
-the exploration RNG's state; one request per batch keeps both exact.
+the exploration RNGs' states; one request per batch keeps both exact.
 
 Examples (``factory``: a picklable callable returning :class:`CollectorParts`, see the tests):
-    >>> ahead = CollectAheadProcess(factory, weights=model.state_dict, generator=noise_rng)  # doctest: +SKIP
+    >>> ahead = CollectAheadProcess(factory, weights=model.state_dict, generators={"noise": noise_rng})  # doctest: +SKIP
     >>> batch, seconds = ahead.take()    # doctest: +SKIP
     >>> ahead.start()                    # the next batch, while this one trains  # doctest: +SKIP
 """
@@ -41,7 +43,7 @@ import pickle
 import time
 import traceback
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -56,13 +58,15 @@ class CollectorParts:
     Attributes:
         batches: the batches, e.g. ``iter(collector)``.
         policy: the module whose ``load_state_dict`` takes the learner's weights before each batch.
-        generator: the RNG the collection draws from (its state travels with each batch), or ``None``.
+        generators: the RNGs the collection draws from, by name (``torch.default_generator`` for the process's
+            global one); each takes the state the caller's generator of that name sends with a request, and
+            its state after the batch travels back.
         close: called when the process stops (e.g. ``collector.shutdown``), or ``None``.
     """
 
     batches: Iterator
     policy: torch.nn.Module
-    generator: torch.Generator | None = None
+    generators: dict[str, torch.Generator] = field(default_factory=dict)
     close: Callable[[], None] | None = None
 
 
@@ -95,16 +99,17 @@ def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> Non
                 break
             if request is None:
                 break
-            weights, rng_state = request
+            weights, rng_states = request
             try:
                 parts.policy.load_state_dict(weights)
-                if parts.generator is not None and rng_state is not None:
-                    parts.generator.set_state(rng_state)
+                for name, state in rng_states.items():
+                    if name in parts.generators:
+                        parts.generators[name].set_state(state)
                 start = time.perf_counter()
                 batch = next(parts.batches)
                 seconds = time.perf_counter() - start
-                state = parts.generator.get_state() if parts.generator is not None else None
-                _send(conn, ("batch", (batch, seconds, state)))
+                states = {name: g.get_state() for name, g in parts.generators.items()}
+                _send(conn, ("batch", (batch, seconds, states)))
             except Exception as err:
                 _send(conn, _error(err))
     finally:
@@ -118,8 +123,9 @@ class CollectAheadProcess:
     Args:
         factory: a picklable callable that builds the :class:`CollectorParts` in the new process.
         weights: returns the learner's weights (a ``state_dict``) when a collection starts.
-        generator: the caller's exploration RNG: its state is sent with each request and
-            replaced by the state the collection left when the batch arrives.
+        generators: the caller's RNGs the collection draws from, by name (those of
+            :attr:`CollectorParts.generators`): their states are sent with each request, and each is
+            replaced by the state its namesake in the process left when the batch arrives.
         num_threads: torch threads in the collector's process.
         start_timeout: seconds to wait for ``factory`` to finish.
 
@@ -128,10 +134,11 @@ class CollectAheadProcess:
     """
 
     def __init__(self, factory: Callable[[], CollectorParts], weights: Callable[[], dict],
-                 generator: torch.Generator | None = None, num_threads: int = 1, start_timeout: float = 600.0) -> None:
+                 generators: dict[str, torch.Generator] | None = None, num_threads: int = 1,
+                 start_timeout: float = 600.0) -> None:
         ctx = mp.get_context("spawn")  # fork deadlocks SAPIEN, and would copy the learner's threads
         self._conn, child = ctx.Pipe()
-        self._weights, self._generator = weights, generator
+        self._weights, self._generators = weights, dict(generators or {})
         self._proc = ctx.Process(target=_serve, args=(child, factory, int(num_threads)), name="collect-ahead", daemon=False)
         self._proc.start()
         child.close()
@@ -163,24 +170,25 @@ class CollectAheadProcess:
                                         f"without sending its batch: {type(err).__name__}") from err
 
     def start(self) -> None:
-        """Send the learner's weights (and the RNG state); the process starts collecting the next batch."""
+        """Send the learner's weights (and the RNG states); the process starts collecting the next batch."""
         if self._in_flight:
             raise RuntimeError("a batch is already being collected: take() it before starting another")
-        state = self._generator.get_state() if self._generator is not None else None
-        _send(self._conn, (self._weights(), state))
+        _send(self._conn, (self._weights(), {name: g.get_state() for name, g in self._generators.items()}))
         self._in_flight = True
 
     def wait(self) -> None:
         """Block until the batch in flight (if any) has arrived; its result, or error, waits for :meth:`take`.
-        The caller's generator then holds the state the collection left."""
+        The caller's generators then hold the states the collection left."""
         if self._in_flight and self._result is None:
             try:
                 self._result = self._receive()
             except CollectorProcessError as err:
                 self._result = ("lost", err)
             kind, payload = self._result
-            if kind == "batch" and self._generator is not None and payload[2] is not None:  # (batch, seconds, rng)
-                self._generator.set_state(payload[2])
+            if kind == "batch":  # (batch, seconds, RNG states by name)
+                for name, state in payload[2].items():
+                    if name in self._generators:
+                        self._generators[name].set_state(state)
 
     def take(self) -> tuple[Any, float]:
         """The next batch and the seconds its collection took in the process (not the wait, which may be shorter).

@@ -60,8 +60,9 @@ copied from the model just before each collection starts, so each batch comes fr
 earlier than the sequential loop's. Evaluations and checkpoints wait for the collection in flight;
 ``time/collect_s`` is then the wait for the batch, ``time/collect_ahead_s`` the collection itself. With
 ``collector.overlap=process`` the collector, its env and the frozen copy live in a process of their own
-(:class:`~mmada_rl.training.CollectAheadProcess`), which is sent the weights and the exploration RNG's state with
-each request, so the learner and the actor no longer contend inside one process; only checkpoints wait.
+(:class:`~mmada_rl.training.CollectAheadProcess`), which is sent the weights and the states of the exploration
+RNGs (the execution noise's and the sampled tokens') with each request, so the learner and the actor no longer
+contend inside one process; only checkpoints wait.
 
 Evaluation (greedy, or sampled with ``eval.sample_temperature``; fixed seeds disjoint from training) runs every
 ``eval.interval_env_steps`` env steps; ``eval_history.json`` records success
@@ -70,8 +71,9 @@ against env steps. With ``ema.enabled=true`` a moving average of the denoiser's 
 is evaluated and saved as the checkpoints' model, while the policy's own weights act in the collector and keep
 training; keeping the average changes nothing else (evaluation forks the RNG), so the same run without it
 evaluates the own weights. Checkpoints (policy, value network, optimizers, counters,
-RNG) are atomic; the online buffer is saved beside them. If the env raises
-while collecting, the run saves what it has and stops with a clear message.
+RNGs, how many initial states the training envs have begun) are atomic; the online buffer is saved beside
+them. A resumed run's training envs start the initial states after those begun, not the run's first ones
+again. If the env raises while collecting, the run saves what it has and stops with a clear message.
 """
 from __future__ import annotations
 
@@ -112,6 +114,7 @@ from utils import (
     ensemble_partners,
     executed_steps,
     exploration_sampler,
+    initial_states_begun,
     learning_rate,
     load_pretrained,
     make_collector,
@@ -125,11 +128,13 @@ from utils import (
     make_online_buffer,
     make_optim,
     make_policy_env_for,
+    make_sampling_generator,
     make_value,
     mixed_batch,
     open_demo_buffer,
     pretrain_value,
     split_batch,
+    with_initial_states_begun,
 )
 from mmada_rl.keys import SUCCESS_KEY, VALUE_TARGET_KEY
 from mmada_rl.policy.value import value_step
@@ -189,8 +194,12 @@ def main(cfg: DictConfig) -> None:
     noise_generator = make_noise_generator(cfg)  # collector.action_noise > 0: the exploration noise's RNG
     if noise_generator is not None:
         generators["noise"] = noise_generator
+    overlap = collects_ahead(cfg)
+    if overlap == "process":  # the tokens the collector's process samples: their RNG is checkpointed here
+        generators["sampling"] = make_sampling_generator(cfg)
 
     iteration, env_steps, updates, history = 0, 0, 0, []
+    begun = 0  # initial states each training worker has begun: a resumed run's envs start after them
 
     def load_weights(model_dir: Path) -> None:
         model.denoiser.load_state_dict(type(model).load(model_dir).denoiser.state_dict())
@@ -201,6 +210,7 @@ def main(cfg: DictConfig) -> None:
         extra = ckpt.trainer_state["extra"]
         resume_own_weights(model.denoiser, ema, extra)
         iteration, env_steps, updates, history = ckpt.step, extra["env_steps"], extra["updates"], extra["eval_history"]
+        begun = int(extra.get("initial_states_begun", 0))  # 0 in checkpoints from before it was saved
         value_op.load_state_dict(extra["value"])
         value_optim.load_state_dict(extra["value_optimizer"])
         if "advantage_baseline" in extra:
@@ -212,7 +222,10 @@ def main(cfg: DictConfig) -> None:
                       f"advantage.baseline_episodes=0")
         if (run_dir / BUFFER_DIR).exists():
             online.loads(run_dir / BUFFER_DIR)
-        print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows")
+        print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows; "
+              + (f"training episodes continue from initial state {begun} of each env worker" if begun else
+                 "the checkpoint does not say how many initial states the training envs began: they start again "
+                 "from env.train_seed"))
     elif gae is not None:  # a fresh run: the critic first learns the demonstrations' returns (value.pretrain_steps > 0)
         value_loss = pretrain_value(cfg, value_op, value_optim, demos)
         if value_loss is not None:
@@ -227,7 +240,7 @@ def main(cfg: DictConfig) -> None:
             ahead.wait()
         if len(online):
             online.dumps(run_dir / BUFFER_DIR)
-        extra = {"env_steps": env_steps, "updates": updates, "eval_history": history,
+        extra = {"env_steps": env_steps, "updates": updates, "eval_history": history, "initial_states_begun": begun,
                  "value": value_op.state_dict(), "value_optimizer": value_optim.state_dict()}
         if groups is not None and groups.baseline is not None:
             extra["advantage_baseline"] = groups.baseline.state_dict()
@@ -255,15 +268,16 @@ def main(cfg: DictConfig) -> None:
           f"{cfg.collector.decisions_per_batch} decisions per iteration, budget {total} env steps"
           + (f"; the critic alone learns for the first {warmup} env steps" if warmup else ""))
 
-    overlap = collects_ahead(cfg)
     collector = None
+    train_cfg = with_initial_states_begun(cfg, begun)  # a resumed run's training envs: new initial states
     if overlap == "process":  # the collector, its env and a frozen copy live in a process of their own
-        ahead = CollectAheadProcess(ActingCollector(cfg), weights=model.state_dict, generator=noise_generator,
+        ahead = CollectAheadProcess(ActingCollector(train_cfg), weights=model.state_dict,
+                                    generators={k: generators[k] for k in ("noise", "sampling") if k in generators},
                                     num_threads=torch.get_num_threads())
     else:
         # with overlap a frozen copy acts in the collector's thread, its weights refreshed before each collection
         acting = acting_policy(cfg, model) if overlap else model
-        collector = make_collector(cfg, make_policy_env_for(cfg, acting, noise_generator))
+        collector = make_collector(cfg, make_policy_env_for(train_cfg, acting, noise_generator))
         batches = iter(collector)
         if overlap:
             ahead = CollectAhead(batches, sync=lambda: acting.load_state_dict(model.state_dict()))
@@ -289,6 +303,7 @@ def main(cfg: DictConfig) -> None:
             model.sampler = eval_sampler  # evaluation and checkpoints keep the model's own sampler
             steps = int(executed_steps(batch).sum())
             env_steps += steps
+            begun = initial_states_begun(batch, cfg, begun)
             if ahead is not None and env_steps < total:  # the next batch, by the weights before this one's updates
                 ahead.start()
             warming = env_steps <= warmup  # value.warmup_env_steps: the critic learns, the policy waits

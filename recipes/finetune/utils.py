@@ -139,10 +139,7 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"optim.lr_decay={cfg.optim.lr_decay!r}; use constant or cosine.")
     if not 0.0 <= float(cfg.optim.min_lr_ratio) <= 1.0:
         raise ValueError(f"optim.min_lr_ratio must lie in [0, 1], got {cfg.optim.min_lr_ratio!r}.")
-    last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
-    if last > EVAL_SEED_BASE:
-        raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
-                         f"into the evaluation seeds (>= {EVAL_SEED_BASE}); lower it.")
+    check_train_seeds(cfg)
 
 
 # -- policy -------------------------------------------------------------------------
@@ -228,6 +225,44 @@ class _FailAfter:
         return FailAfterSteps(self.steps)
 
 
+def initial_states_begun(batch: TensorDictBase, cfg: DictConfig, begun: int = 0) -> int:
+    """How many initial states the training envs have begun, once ``batch`` is collected: the most of any worker.
+
+    Worker ``w``'s ``i``-th initial state is seed ``env.train_seed + w * WORKER_SEED_STRIDE + i``
+    (:class:`~mmada_rl.envs.maniskill.SeedSchedule`), read from the batch's episode seeds; ``begun`` is the count
+    before it. Checkpoints keep the count, so that a resumed run's envs start new initial states
+    (:func:`with_initial_states_begun`) instead of the run's first ones again."""
+    index = (batch.get(GROUP_KEY).reshape(-1) - int(cfg.env.train_seed)) % WORKER_SEED_STRIDE
+    return max(int(begun), int(index.max()) + 1 if index.numel() else 0)
+
+
+def with_initial_states_begun(cfg: DictConfig, begun: int) -> DictConfig:
+    """``cfg`` with every training worker's first initial state ``begun`` further on (``env.train_seed + begun``):
+    the config a resumed run builds its training envs from. ``cfg`` itself when ``begun`` is 0.
+
+    Raises:
+        ValueError: if the shifted seeds would reach the next worker's or the evaluation seeds.
+    """
+    if not begun:
+        return cfg
+    if begun >= WORKER_SEED_STRIDE:
+        raise ValueError(f"{begun} initial states begun per worker reach the next worker's seeds "
+                         f"(each worker has {WORKER_SEED_STRIDE}); start a new run with another env.train_seed.")
+    shifted = copy.deepcopy(cfg)
+    shifted.env.train_seed = int(cfg.env.train_seed) + int(begun)
+    check_train_seeds(shifted)
+    return shifted
+
+
+def check_train_seeds(cfg: DictConfig) -> None:
+    """The training envs' seeds (``env.train_seed`` onwards, :data:`WORKER_SEED_STRIDE` per worker) stay below the
+    evaluation seeds."""
+    last = int(cfg.env.train_seed) + int(cfg.env.num_workers) * WORKER_SEED_STRIDE
+    if last > EVAL_SEED_BASE:
+        raise ValueError(f"env.train_seed={cfg.env.train_seed} with {cfg.env.num_workers} workers reaches seed {last}, "
+                         f"into the evaluation seeds (>= {EVAL_SEED_BASE}); lower it.")
+
+
 def make_noise_generator(cfg: DictConfig) -> torch.Generator | None:
     """The RNG of :class:`~mmada_rl.policy.ExecutionNoise` (checkpointed with the run), or ``None`` without noise."""
     return torch.Generator().manual_seed(int(cfg.seed)) if action_noise(cfg) > 0 else None
@@ -274,24 +309,31 @@ def acting_policy(cfg: DictConfig, model: MMaDAModel) -> MMaDAModel:
 SAMPLING_SEED_OFFSET = 7919  # the collector process's torch RNG (sampled decoding): seed + this
 
 
+def make_sampling_generator(cfg: DictConfig) -> torch.Generator:
+    """The RNG of the tokens :class:`ActingCollector`'s process samples (``collector.overlap=process``), held by the
+    learner and checkpointed with the run: its state travels with each batch request and back, so a resumed run
+    continues the draws. Seeded from ``seed + SAMPLING_SEED_OFFSET``, a stream apart from the learner's."""
+    return torch.Generator().manual_seed(int(cfg.seed) + SAMPLING_SEED_OFFSET)
+
+
 class ActingCollector:
     """Builds, in the collector's own process (``collector.overlap=process``), what collects there: a frozen copy of
     the pretrained policy with the exploration sampler, its noise RNG, the training env and TorchRL's collector.
-    The learner's weights and the RNG's state arrive with each batch request
-    (:class:`~mmada_rl.training.CollectAheadProcess`); tokens sampled at ``collector.temperature`` draw from the
-    process's own torch RNG, seeded from ``seed`` (not checkpointed: a resumed run draws anew). Picklable: it holds
-    the config only."""
+    The learner's weights and the RNGs' states arrive with each batch request
+    (:class:`~mmada_rl.training.CollectAheadProcess`): ``noise`` (:func:`make_noise_generator`) and ``sampling``
+    (:func:`make_sampling_generator`), the state of the process's own torch RNG, which the tokens sampled at
+    ``collector.temperature`` draw from. Picklable: it holds the config only."""
 
     def __init__(self, cfg: DictConfig) -> None:
         self.cfg = cfg
 
     def __call__(self) -> training.CollectorParts:
         cfg = self.cfg
-        torch.manual_seed(int(cfg.seed) + SAMPLING_SEED_OFFSET)  # the sampled tokens' stream, not the learner's
         acting = acting_policy(cfg, load_pretrained(cfg))
         generator = make_noise_generator(cfg)
         collector = make_collector(cfg, make_policy_env_for(cfg, acting, generator))
-        return training.CollectorParts(iter(collector), acting, generator, collector.shutdown)
+        generators = {"sampling": torch.default_generator} | ({"noise": generator} if generator is not None else {})
+        return training.CollectorParts(iter(collector), acting, generators, collector.shutdown)
 
 
 def make_collector(cfg: DictConfig, penv: PolicyEnv) -> Collector:
