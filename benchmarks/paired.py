@@ -11,10 +11,13 @@ independent samples. Evaluations written by ``mmada-rl eval`` on the same fixed 
 are not independent, though: the same initial states, and for one training seed the same policy
 before and after a change. Pairing them episode by episode asks more of the data:
 
-* an **arm** is a label and one ``eval.json`` per training seed (its ``per_episode`` records);
-  every arm names the same number of them, and source ``i`` of one arm is paired with source
-  ``i`` of every other (list the training seeds in the same order), episode by episode on the
-  env seeds both ran, which must be the same list;
+* an **arm** is a label and one source per training seed: an ``eval.json`` of ``mmada-rl eval``
+  (its ``per_episode`` records), or a fine-tuning run directory (``recipes/finetune``, e.g. one of
+  ``benchmarks/compare``'s) for the last evaluation its ``eval_history.json`` recorded, ``RUN@S``
+  for the one at ``S`` online env steps (each record keeps its episodes); every arm names the same
+  number of sources, and source ``i`` of one arm is paired with source ``i`` of every other (list
+  the training seeds in the same order), episode by episode on the env seeds both ran, which must
+  be the same list;
 * a **contrast** ``I J`` (arms counted from 1; ``--contrast``, repeatable; default: every arm
   against the first) counts the paired episodes both arms succeed in, only ``I``, only ``J`` and
   neither, and gives the exact two-sided McNemar test of the discordant pairs (a binomial test
@@ -38,19 +41,39 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, markdown_table, save_figure, write_results  # noqa: E402
+from seeds import run_evaluation, split_tags  # noqa: E402
 
 from mmada_rl.evaluation import wilson_interval  # noqa: E402
 
 
 def read_episodes(path: Path) -> dict:
-    """One ``eval.json``'s episodes: ``{source, checkpoint, seeds: [env seed], success: [bool]}``."""
+    """One source's episodes: ``{source, checkpoint, seeds: [env seed], success: [bool]}``; the source is an
+    ``eval.json`` or a fine-tuning run's evaluation (``RUN``, ``RUN@S``)."""
+    run, at_step, _ = split_tags(path)
+    if run.is_dir():
+        return read_run_episodes(path, run, at_step)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file (an arm's sources are eval.json files of `mmada-rl eval`).")
+        raise FileNotFoundError(f"{path}: no such file (an arm's sources are eval.json files of `mmada-rl eval`, "
+                                f"or fine-tuning run directories).")
     data = json.loads(path.read_text())
     episodes = data.get("per_episode")
     if "eval/success_once" not in data or not episodes:
         raise ValueError(f"{path} records no episodes (per_episode): pair evaluations written by `mmada-rl eval`.")
     return {"source": str(path), "checkpoint": data.get("checkpoint"),
+            "seeds": [int(e["seed"]) for e in episodes], "success": [bool(e["success_once"]) for e in episodes]}
+
+
+def read_run_episodes(source: Path, run: Path, at_step: int | None) -> dict:
+    """The episodes of a fine-tuning run's evaluation at ``at_step`` online env steps (its last when ``None``)."""
+    if not (run / "eval_history.json").is_file():
+        raise ValueError(f"{source}: only a fine-tuning run's evaluations (eval_history.json) keep their episodes; "
+                         f"evaluate this run with `mmada-rl eval --out DIR` and pair DIR/eval.json.")
+    chosen = run_evaluation(run, at_step)
+    episodes = chosen.get("per_episode")
+    if not episodes:
+        raise ValueError(f"{source}: its evaluation at env step {chosen['step']} keeps no episodes (per_episode, "
+                         f"which older runs did not record): evaluate its checkpoint with `mmada-rl eval`.")
+    return {"source": str(source), "checkpoint": str(run),
             "seeds": [int(e["seed"]) for e in episodes], "success": [bool(e["success_once"]) for e in episodes]}
 
 
@@ -70,7 +93,7 @@ def check_paired(arms: list[dict]) -> None:
     if len(counts) != 1:
         named = ", ".join(f"{arm['label']!r}: {len(arm['sources'])}" for arm in arms)
         raise ValueError(f"arms name different numbers of sources ({named}); source i of each arm is paired "
-                         f"with source i of the others, so give every arm one eval.json per training seed.")
+                         f"with source i of the others, so give every arm one source per training seed.")
     for i in range(counts.pop()):
         first = arms[0]["sources"][i]
         for arm in arms[1:]:
@@ -107,9 +130,10 @@ def contrast(arms: list[dict], i: int, j: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--arm", nargs="+", action="append", required=True, metavar=("LABEL", "EVAL_JSON"),
-                        help="a label, then one eval.json of `mmada-rl eval` per training seed, in the same seed "
-                             "order in every arm; repeatable (at least two arms)")
+    parser.add_argument("--arm", nargs="+", action="append", required=True, metavar=("LABEL", "SOURCE"),
+                        help="a label, then one source per training seed, in the same seed order in every arm: an "
+                             "eval.json of `mmada-rl eval`, or a fine-tuning run directory (its last evaluation; "
+                             "RUN@S: the one at S online env steps); repeatable (at least two arms)")
     parser.add_argument("--contrast", nargs=2, type=int, action="append", metavar=("I", "J"),
                         help="compare arm I with arm J (counted from 1) episode by episode; repeatable "
                              "(default: every arm against the first)")
@@ -118,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for arm in args.arm:
         if len(arm) < 2:
-            parser.error(f"--arm {arm[0]!r} names no eval.json: give a label, then one eval.json per training seed.")
+            parser.error(f"--arm {arm[0]!r} names no source: give a label, then one eval.json (or fine-tuning run) "
+                         f"per training seed.")
     if len(args.arm) < 2:
         parser.error("give at least two --arm to compare.")
     pairs = args.contrast or [[1, j] for j in range(2, len(args.arm) + 1)]

@@ -67,7 +67,7 @@ def _checkpoint_seed(checkpoint: str | None) -> int | str | None:
     return None if None in seeds else "+".join(str(seed) for seed in seeds)
 
 
-def _split_tags(source: Path) -> tuple[Path, int | None, str]:
+def split_tags(source: Path) -> tuple[Path, int | None, str]:
     """``RUN[@STEP][@raw]`` -> ``(RUN, STEP or None, log prefix)`` when ``RUN`` is a directory: ``eval``, or
     ``eval_raw`` with ``@raw``; any other source -> ``(source, None, "eval")``. A path that merely contains
     ``@`` stays a path."""
@@ -119,7 +119,7 @@ def read_source(source: Path) -> dict:
     if report.endswith(".json") and Path(report).is_file():
         return read_report_seed(Path(report), tag)
     label = source
-    source, at_step, prefix = _split_tags(source)
+    source, at_step, prefix = split_tags(source)
     if source.is_file():
         data = json.loads(source.read_text())
         if "eval/success_once" not in data:
@@ -130,14 +130,7 @@ def read_source(source: Path) -> dict:
                "success_at_end": float(data["eval/success_at_end"]),
                "reached": {k[len("eval/reached/"):]: float(v) for k, v in data.items() if k.startswith("eval/reached/")}}
     elif source.is_dir():
-        evaluations, unit = _run_evaluations(source, prefix)
-        if at_step is None:
-            chosen = evaluations[-1]
-        else:
-            chosen = next((e for e in evaluations if e["step"] == at_step), None)
-            if chosen is None:
-                logged = ", ".join(str(e["step"]) for e in evaluations)
-                raise ValueError(f"{source} logged no evaluation at {unit} {at_step} (it logged: {logged}).")
+        chosen = run_evaluation(source, at_step, prefix)
         row = {"seed": _run_seed(source), "step": chosen["step"], "episodes": int(chosen.get("episodes", 0)),
                "success_once": chosen["success_once"], "success_at_end": chosen.get("success_at_end"),
                "reached": {k[len("reached/"):]: v for k, v in chosen.items() if k.startswith("reached/")}}
@@ -147,6 +140,19 @@ def read_source(source: Path) -> dict:
         raise ValueError(f"{label}: the evaluation logs no episode count, so its successes cannot be pooled.")
     row["successes"] = round(row["success_once"] * row["episodes"])
     return {"source": str(label), **row}
+
+
+def run_evaluation(run: Path, at_step: int | None = None, prefix: str = "eval") -> dict:
+    """The evaluation a run directory logged at ``at_step`` (its last when ``None``), with its ``step``: online env
+    steps for a fine-tuning run (its ``eval_history.json`` record), updates for a pretraining or imitation run."""
+    evaluations, unit = _run_evaluations(run, prefix)
+    if at_step is None:
+        return evaluations[-1]
+    chosen = next((e for e in evaluations if e["step"] == at_step), None)
+    if chosen is None:
+        logged = ", ".join(str(e["step"]) for e in evaluations)
+        raise ValueError(f"{run} logged no evaluation at {unit} {at_step} (it logged: {logged}).")
+    return chosen
 
 
 def _run_evaluations(run: Path, prefix: str) -> tuple[list[dict], str]:

@@ -19,6 +19,7 @@ from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.windows import no_start_steps
 from mmada_rl.diffusion.path import path_log_prob, sample_steps, select_steps
 from mmada_rl.envs.maniskill import make_env
+from mmada_rl.evaluation import EVAL_SEED_BASE
 from mmada_rl.diffusion.keys import CORRUPTED_KEY, NOISY_SEQUENCE_KEY
 from mmada_rl.keys import (ACTION_GRIPPER_ONLY_KEY, ACTION_IS_PAD_KEY, ADVANTAGE_KEY, GROUP_KEY, IS_DEMO_KEY, NOISE_LEVEL_KEY, SEQUENCE_KEY,
                            VALUE_TARGET_KEY)
@@ -868,6 +869,33 @@ def test_seed_report_reads_a_fine_tuning_run_from_its_eval_history(rwr_run, tmp_
         seeds.main(["--group", "x", f"{rwr_run}@7", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="no @raw"):
         seeds.main(["--group", "x", f"{rwr_run}@raw", "--out", str(tmp_path)])
+
+
+def test_a_fine_tuning_evaluation_keeps_its_episodes_and_pairs_with_an_evaluation_of_its_checkpoint(rwr_run, tmp_path):
+    """Each eval_history.json record keeps its episodes (env seed, success); benchmarks/paired.py pairs the run's
+    evaluations with each other and with `mmada-rl eval` of its last checkpoint on the same episodes, which
+    succeeds in the same ones (greedy decoding, no moving average)."""
+    history = json.loads((rwr_run / "eval_history.json").read_text())
+    for record in history:
+        assert [e["seed"] for e in record["per_episode"]] == [EVAL_SEED_BASE]
+        assert record["success_once"] == sum(e["success_once"] for e in record["per_episode"]) / record["episodes"]
+    checkpoint = latest_checkpoint(rwr_run)
+    evaluated = subprocess.run([sys.executable, "-m", "mmada_rl.cli", "eval", "--checkpoint", str(checkpoint),
+                                "--task", "PickCube-v1", "--episodes", "1", "--max-episode-steps", "10",
+                                "--num-threads", "1", "--out", str(tmp_path / "eval")],
+                               cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert evaluated.returncode == 0, evaluated.stderr[-3000:]
+    paired = load_script("benchmarks/paired.py")
+    assert paired.main(["--arm", "pretrained", f"{rwr_run}@0", "--arm", "fine-tuned", str(rwr_run),
+                        "--arm", "its checkpoint", str(tmp_path / "eval" / "eval.json"), "--contrast", "2", "3",
+                        "--contrast", "1", "2", "--name", "p", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "p.json").read_text())
+    first, last = round(history[0]["success_once"]), round(history[-1]["success_once"])
+    assert [arm["successes"] for arm in report["arms"]] == [[first], [last], [last]]
+    same = report["contrasts"][0]
+    assert same["only_first"] == same["only_second"] == 0 and same["pairs"] == 1
+    with pytest.raises(ValueError, match="logged no evaluation at env step 7"):
+        paired.main(["--arm", "a", f"{rwr_run}@7", "--arm", "b", str(rwr_run), "--out", str(tmp_path)])
 
 
 def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pick_demos, tmp_path):

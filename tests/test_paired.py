@@ -68,3 +68,24 @@ def test_paired_report_refuses_what_cannot_be_paired(tmp_path):
         paired.main(["--arm", "a", a, "--out", str(tmp_path)])
     with pytest.raises(SystemExit):  # an arm out of range
         paired.main(["--arm", "a", a, "--arm", "b", b, "--contrast", "1", "3", "--out", str(tmp_path)])
+
+
+def test_a_fine_tuning_run_is_a_source_where_its_evaluations_kept_their_episodes(tmp_path):
+    """A run directory is read from its eval_history.json (RUN: the last evaluation, RUN@S: the one at S env
+    steps); a record without episodes, or a run that is not a fine-tuning run, is refused with what to do."""
+    a = write_eval(tmp_path / "a/eval.json", [1, 0])
+    run = tmp_path / "run"
+    run.mkdir()
+    episodes = [{"seed": EVAL_SEED_BASE + i, "success_once": s} for i, s in enumerate([False, True])]
+    (run / "eval_history.json").write_text(json.dumps([
+        {"env_steps": 0, "success_once": 0.5, "episodes": 2},  # recorded before evaluations kept their episodes
+        {"env_steps": 4135, "success_once": 0.5, "episodes": 2, "per_episode": episodes}]))
+    out = tmp_path / "report"
+    assert paired.main(["--arm", "a", a, "--arm", "run", str(run), "--name", "p", "--out", str(out)]) == 0
+    (c,) = json.loads((out / "p.json").read_text())["contrasts"]
+    assert (c["only_first"], c["only_second"]) == (1, 1)
+    assert paired.main(["--arm", "a", a, "--arm", "run", f"{run}@4135", "--name", "p", "--out", str(out)]) == 0
+    with pytest.raises(ValueError, match="evaluation at env step 0 keeps no episodes"):
+        paired.main(["--arm", "a", a, "--arm", "run", f"{run}@0", "--out", str(out)])
+    with pytest.raises(ValueError, match="only a fine-tuning run's evaluations"):
+        paired.main(["--arm", "a", a, "--arm", "dir", str(tmp_path / "a"), "--out", str(out)])

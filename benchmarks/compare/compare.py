@@ -390,9 +390,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def history_of(out: Path, online: bool) -> list[dict]:
-    """Evaluation records of a run: ``eval_history.json``, or the imitation recipe's final evaluation at env step 0."""
+    """Evaluation records of a run: ``eval_history.json`` (without each record's ``per_episode``, which
+    ``benchmarks/paired.py`` reads), or the imitation recipe's final evaluation at env step 0."""
     if (out / "eval_history.json").exists():
-        return json.loads((out / "eval_history.json").read_text())
+        return [{k: v for k, v in r.items() if k != "per_episode"}
+                for r in json.loads((out / "eval_history.json").read_text())]
     if not online and (out / "final.json").exists():
         final = json.loads((out / "final.json").read_text())
         if "eval/success_once" in final:
