@@ -12,9 +12,10 @@ are not independent, though: the same initial states, and for one training seed 
 before and after a change. Pairing them episode by episode asks more of the data:
 
 * an **arm** is a label and one source per training seed: an ``eval.json`` of ``mmada-rl eval``
-  (its ``per_episode`` records), or a fine-tuning run directory (``recipes/finetune``, e.g. one of
-  ``benchmarks/compare``'s) for the last evaluation its ``eval_history.json`` recorded, ``RUN@S``
-  for the one at ``S`` online env steps (each record keeps its episodes); every arm names the same
+  (its ``per_episode`` records), or a fine-tuning or online RL baseline run directory (``recipes/finetune``,
+  ``recipes/baselines/online.py``, e.g. one of ``benchmarks/compare``'s) for the last evaluation its
+  ``eval_history.json`` recorded, ``RUN@S`` for the one at ``S`` online env steps (each record
+  keeps its episodes); every arm names the same
   number of sources, and source ``i`` of one arm is paired with source ``i`` of every other (list
   the training seeds in the same order), episode by episode on the env seeds both ran, which must
   be the same list;
@@ -64,9 +65,11 @@ def read_episodes(path: Path) -> dict:
 
 
 def read_run_episodes(source: Path, run: Path, at_step: int | None) -> dict:
-    """The episodes of a fine-tuning run's evaluation at ``at_step`` online env steps (its last when ``None``)."""
+    """The episodes of a fine-tuning (or online RL baseline) run's evaluation at ``at_step`` online env steps (its
+    last when ``None``)."""
     if not (run / "eval_history.json").is_file():
-        raise ValueError(f"{source}: only a fine-tuning run's evaluations (eval_history.json) keep their episodes; "
+        raise ValueError(f"{source}: only the evaluations of fine-tuning and online RL baseline runs "
+                         f"(eval_history.json) keep their episodes; "
                          f"evaluate this run with `mmada-rl eval --out DIR` and pair DIR/eval.json.")
     chosen = run_evaluation(run, at_step)
     episodes = chosen.get("per_episode")
@@ -132,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--arm", nargs="+", action="append", required=True, metavar=("LABEL", "SOURCE"),
                         help="a label, then one source per training seed, in the same seed order in every arm: an "
-                             "eval.json of `mmada-rl eval`, or a fine-tuning run directory (its last evaluation; "
+                             "eval.json of `mmada-rl eval`, or a fine-tuning or online RL baseline run directory (its last evaluation; "
                              "RUN@S: the one at S online env steps); repeatable (at least two arms)")
     parser.add_argument("--contrast", nargs=2, type=int, action="append", metavar=("I", "J"),
                         help="compare arm I with arm J (counted from 1) episode by episode; repeatable "
@@ -142,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     for arm in args.arm:
         if len(arm) < 2:
-            parser.error(f"--arm {arm[0]!r} names no source: give a label, then one eval.json (or fine-tuning run) "
+            parser.error(f"--arm {arm[0]!r} names no source: give a label, then one eval.json (or run directory) "
                          f"per training seed.")
     if len(args.arm) < 2:
         parser.error("give at least two --arm to compare.")

@@ -209,6 +209,15 @@ class EvalResult:
         out = {f"eval/{k}": int(v) if isinstance(v, bool) else v for k, v in asdict(self).items() if k not in skip}
         return {**out, **{f"eval/reached/{flag}": share for flag, share in self.stages.items()}}
 
+    def history_record(self) -> dict:
+        """What a training run's ``eval_history.json`` keeps of this evaluation: ``success_once`` with its 95%
+        interval, ``success_at_end``, ``episodes``, and each episode's env seed and success (``per_episode``,
+        what ``benchmarks/paired.py`` pairs on)."""
+        return {"success_once": self.success_once, "success_once_ci_low": self.success_once_ci_low,
+                "success_once_ci_high": self.success_once_ci_high, "success_at_end": self.success_at_end,
+                "episodes": self.episodes,
+                "per_episode": [{"seed": int(r.seed), "success_once": bool(r.success_once)} for r in self.per_episode]}
+
     def table(self) -> str:
         """A small Markdown table of the headline numbers."""
         rows = [

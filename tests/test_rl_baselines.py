@@ -16,7 +16,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from mmada_rl.baselines.rl import (OneStepChunkActor, RLAgent, RLNetworkConfig, is_rl_agent_dir, load_rl_actor, make_actor,
                                    make_qvalue, make_value)
-from mmada_rl.evaluation import evaluate
+from mmada_rl.evaluation import EVAL_SEED_BASE, evaluate
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -24,7 +24,7 @@ RECIPE = REPO / "recipes" / "baselines" / "online.py"
 SPEC = Bounded(-1.0, 1.0, (7,))
 SMALL_ENCODER = {"channels": [8, 16], "image_features": 16, "state_features": 8, "num_keypoints": 4}
 RECORD_KEYS = {"env_steps", "updates", "success_once", "success_once_ci_low", "success_once_ci_high", "success_at_end",
-               "episodes", "wall_s"}
+               "episodes", "per_episode", "wall_s"}
 
 
 def batch(config: RLNetworkConfig, n: int = 8) -> TensorDict:
@@ -187,6 +187,7 @@ def test_each_baseline_trains_evaluates_and_checkpoints(toy_runs, algo, observat
         assert set(record) == RECORD_KEYS
         assert 0.0 <= record["success_once_ci_low"] <= record["success_once"] <= record["success_once_ci_high"] <= 1.0
         assert record["episodes"] == 1 and record["wall_s"] >= 0
+        assert record["per_episode"] == [{"seed": EVAL_SEED_BASE, "success_once": record["success_once"] == 1.0}]
     assert [r["updates"] for r in history] == sorted(r["updates"] for r in history)
     final = json.loads((run_dir / "final.json").read_text())
     assert {k: final[k] for k in RECORD_KEYS} == history[-1]

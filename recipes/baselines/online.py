@@ -83,7 +83,7 @@ def main(cfg: DictConfig) -> None:
             save(cfg, run_dir, agent, optimizer, online, progress, config)
     if offline and int(cfg.eval.episodes) and not any(r["env_steps"] == 0 for r in history.records):
         history.append(evaluate(cfg, nets.actor, now(progress)))
-        print(f"{PREFIX} offline: {json.dumps(history.records[-1])}")
+        print(f"{PREFIX} offline: {json.dumps({k: v for k, v in history.records[-1].items() if k != 'per_episode'})}")
 
     # online phase: collect, update, evaluate every eval.interval env steps, checkpoint every checkpoint.interval
     total, eval_every, ckpt_every = int(cfg.collector.total_env_steps), int(cfg.eval.interval or 0), int(cfg.checkpoint.interval)

@@ -346,7 +346,8 @@ class EvalHistory:
 
 
 def evaluate(cfg: DictConfig, actor, progress: Progress) -> dict:
-    """One ``eval_history.json`` record: success rates of the greedy actor on ``eval.episodes`` fixed evaluation seeds."""
+    """One ``eval_history.json`` record: success rates of the greedy actor on ``eval.episodes`` fixed evaluation seeds,
+    and each episode's (:meth:`~mmada_rl.evaluation.EvalResult.history_record`)."""
     from mmada_rl.evaluation import evaluate as run_eval
 
     mode = obs_mode(cfg)
@@ -354,6 +355,5 @@ def evaluate(cfg: DictConfig, actor, progress: Progress) -> dict:
     result = run_eval(policy, cfg.env.task, episodes=int(cfg.eval.episodes),
                       image_size=int(cfg.env.image_size), control_mode=cfg.env.control_mode,
                       max_episode_steps=cfg.eval.max_episode_steps, execute_steps=1, progress=False)
-    return {"env_steps": progress.env_steps, "updates": progress.updates, "success_once": result.success_once,
-            "success_once_ci_low": result.success_once_ci_low, "success_once_ci_high": result.success_once_ci_high,
-            "success_at_end": result.success_at_end, "episodes": result.episodes, "wall_s": round(progress.wall_s, 2)}
+    return {"env_steps": progress.env_steps, "updates": progress.updates, **result.history_record(),
+            "wall_s": round(progress.wall_s, 2)}

@@ -144,19 +144,14 @@ BUFFER_DIR = "online_buffer"
 
 def run_eval(cfg: DictConfig, model, env_steps: int, updates: int, start: float) -> dict:
     """Evaluation with the model's own sampler (not the exploration one): greedy, or sampled at
-    ``eval.sample_temperature``. The record keeps each episode's env seed and success (``per_episode``), so
-    ``benchmarks/paired.py`` can pair it with other evaluations on the same episodes."""
+    ``eval.sample_temperature``. The record keeps each episode's env seed and success
+    (:meth:`~mmada_rl.evaluation.EvalResult.history_record`), which ``benchmarks/paired.py`` pairs on."""
     temperature = None if cfg.eval.sample_temperature is None else float(cfg.eval.sample_temperature)
     result = evaluate(model, cfg.env.task, episodes=int(cfg.eval.episodes), execute_steps=cfg.collector.execute_steps,
                       control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
                       sample_temperature=temperature, progress=False)
-    return {
-        "env_steps": env_steps, "updates": updates, "sample_temperature": result.sample_temperature,
-        "success_once": result.success_once,
-        "success_once_ci_low": result.success_once_ci_low, "success_once_ci_high": result.success_once_ci_high,
-        "success_at_end": result.success_at_end, "episodes": result.episodes, "wall_s": time.perf_counter() - start,
-        "per_episode": [{"seed": e.seed, "success_once": e.success_once} for e in result.per_episode],
-    }
+    return {"env_steps": env_steps, "updates": updates, "sample_temperature": result.sample_temperature,
+            **result.history_record(), "wall_s": time.perf_counter() - start}
 
 
 def update_value(cfg, value_op, value_optim, rows) -> float:
