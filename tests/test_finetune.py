@@ -125,6 +125,31 @@ def test_train_seed_schedule_repeats_each_initial_state_group_size_times():
     env.close()
 
 
+def test_a_resumed_run_starts_each_env_worker_at_the_initial_states_after_those_begun():
+    """Two ParallelEnv workers, two episodes per initial state: after 6 steps of 2-step episodes each worker has
+    begun its initial states 0 and 1; a resumed run's workers start at 2, in seeds that stay each worker's own."""
+    utils = recipe_utils()
+    cfg = OmegaConf.create({"env": {"train_seed": 10, "num_workers": 2}})
+    env = make_env("PushCube-v1", max_episode_steps=2, train_seed=10, group_size=2, num_workers=2)
+    try:
+        rollout = env.rollout(6, break_when_any_done=False)
+    finally:
+        env.close()
+    stride = utils.WORKER_SEED_STRIDE
+    assert rollout[GROUP_KEY].reshape(2, -1).tolist() == [[10] * 4 + [11] * 2, [10 + stride] * 4 + [11 + stride] * 2]
+    begun = utils.initial_states_begun(rollout, cfg)
+    assert begun == 2 and utils.initial_states_begun(rollout, cfg, begun=5) == 5  # never back
+    resumed = utils.with_initial_states_begun(cfg, begun)
+    assert resumed.env.train_seed == 12 and cfg.env.train_seed == 10  # worker w resumes at 12 + w * stride
+    assert utils.with_initial_states_begun(cfg, 0) is cfg
+    with pytest.raises(ValueError, match="reach the next worker's seeds"):
+        utils.with_initial_states_begun(cfg, stride)
+    nine = OmegaConf.create({"env": {"train_seed": 10, "num_workers": 9}})
+    utils.check_train_seeds(nine)  # their seeds end at 900_010
+    with pytest.raises(ValueError, match="into the evaluation seeds"):
+        utils.with_initial_states_begun(nine, stride - 5)  # the last worker's would pass 1_000_000
+
+
 def test_group_relative_advantages():
     adv = group_relative_advantages(torch.tensor([1.0, 0.0, 1.0, 1.0, 3.0]), torch.tensor([7, 7, 8, 8, 9]))
     torch.testing.assert_close(adv, torch.tensor([1.0, -1.0, 0.0, 0.0, 0.0]))
