@@ -13,7 +13,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mmada_rl.diffusion.path import DecodingPath, path_log_prob
 from mmada_rl.diffusion.sampler import MaskedDiffusionSampler, SamplerConfig
 from mmada_rl.data.windows import append_state_differences
-from mmada_rl.envs.maniskill import EnvConfig, make_env
+from mmada_rl.envs.maniskill import WORKER_SEED_STRIDE, EnvConfig, make_env
 from mmada_rl.diffusion.keys import VISUAL_FEATURES_KEY
 from mmada_rl.keys import (
     ACTION_CHUNK_KEY,
@@ -22,6 +22,7 @@ from mmada_rl.keys import (
     ACTION_TOKENS_KEY,
     ADVANTAGE_KEY,
     GOAL_IMAGE_KEY,
+    GROUP_KEY,
     IMAGE_KEY,
     INSTRUCTION_KEY,
     SEQUENCE_KEY,
@@ -454,6 +455,8 @@ def test_parallel_env_runs_chunks_across_episode_ends(model):
         penv = make_policy_env(env, MMaDAActor(model), execute_steps=3)
         rollout = penv.env.rollout(4, penv.policy, break_when_any_done=False)  # the third chunk ends the episodes
         assert rollout["next", "step_count"].squeeze(-1).tolist() == [[3, 6, EPISODE_STEPS, 3]] * 2
+        # each worker's own episode seeds, the next one after the reset (what fine-tuning's resume counts)
+        assert rollout[GROUP_KEY].squeeze(-1).tolist() == [[0, 0, 0, 1], [WORKER_SEED_STRIDE] * 3 + [WORKER_SEED_STRIDE + 1]]
         assert rollout[LOG_PROBS_KEY].shape == (2, 4) and rollout[ACTION_CHUNK_KEY].shape == (2, 4, CHUNK, 7)
         ensemble = make_policy_env(env, MMaDAActor(model), temporal_ensemble=True)
         rollout = ensemble.env.rollout(EPISODE_STEPS + 1, ensemble.policy, break_when_any_done=False)

@@ -126,19 +126,18 @@ def test_train_seed_schedule_repeats_each_initial_state_group_size_times():
 
 
 def test_a_resumed_run_starts_each_env_worker_at_the_initial_states_after_those_begun():
-    """Two ParallelEnv workers, two episodes per initial state: after 6 steps of 2-step episodes each worker has
-    begun its initial states 0 and 1; a resumed run's workers start at 2, in seeds that stay each worker's own."""
+    """Episode seeds as two ParallelEnv workers report them (worker ``w`` from ``train_seed + w * stride``; the
+    layout test_parallel_env_runs_chunks_across_episode_ends checks on real envs), two episodes per initial state:
+    each worker has begun its initial states 0 and 1, so a resumed run's workers start at 2, in seeds that stay
+    each worker's own."""
     utils = recipe_utils()
-    cfg = OmegaConf.create({"env": {"train_seed": 10, "num_workers": 2}})
-    env = make_env("PushCube-v1", max_episode_steps=2, train_seed=10, group_size=2, num_workers=2)
-    try:
-        rollout = env.rollout(6, break_when_any_done=False)
-    finally:
-        env.close()
     stride = utils.WORKER_SEED_STRIDE
-    assert rollout[GROUP_KEY].reshape(2, -1).tolist() == [[10] * 4 + [11] * 2, [10 + stride] * 4 + [11 + stride] * 2]
-    begun = utils.initial_states_begun(rollout, cfg)
-    assert begun == 2 and utils.initial_states_begun(rollout, cfg, begun=5) == 5  # never back
+    cfg = OmegaConf.create({"env": {"train_seed": 10, "num_workers": 2}})
+    seeds = torch.tensor([[10, 10, 10, 10, 11, 11], [10 + stride] * 4 + [11 + stride] * 2]).unsqueeze(-1)
+    batch = TensorDict({GROUP_KEY: seeds}, batch_size=[2, 6])
+    begun = utils.initial_states_begun(batch, cfg)
+    assert begun == 2 and utils.initial_states_begun(batch, cfg, begun=5) == 5  # never back
+    assert utils.initial_states_begun(batch[:, :4], cfg) == 1
     resumed = utils.with_initial_states_begun(cfg, begun)
     assert resumed.env.train_seed == 12 and cfg.env.train_seed == 10  # worker w resumes at 12 + w * stride
     assert utils.with_initial_states_begun(cfg, 0) is cfg
@@ -949,7 +948,7 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     del state["extra"]["initial_states_begun"]
     torch.save(state, state_file)
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={older}", f"demos.dir={pick_demos}", *COMMON,
-                      "checkpoint.resume=true")
+                      "checkpoint.resume=true", "collector.total_env_steps=20", "eval.episodes=0")  # nothing left to run
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "they start again from env.train_seed" in proc.stdout
 

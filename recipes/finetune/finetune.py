@@ -207,7 +207,8 @@ def main(cfg: DictConfig) -> None:
         extra = ckpt.trainer_state["extra"]
         resume_own_weights(model.denoiser, ema, extra)
         iteration, env_steps, updates, history = ckpt.step, extra["env_steps"], extra["updates"], extra["eval_history"]
-        begun = int(extra.get("initial_states_begun", 0))  # 0 in checkpoints from before it was saved
+        saved_begun = extra.get("initial_states_begun")  # None in checkpoints from before it was saved
+        begun = int(saved_begun or 0)
         value_op.load_state_dict(extra["value"])
         value_optim.load_state_dict(extra["value_optimizer"])
         if "advantage_baseline" in extra:
@@ -220,7 +221,8 @@ def main(cfg: DictConfig) -> None:
         if (run_dir / BUFFER_DIR).exists():
             online.loads(run_dir / BUFFER_DIR)
         print(f"{PREFIX} resumed from {ckpt.path}: iteration {iteration}, {env_steps} env steps, {len(online)} online rows; "
-              + (f"training episodes continue from initial state {begun} of each env worker" if begun else
+              + (f"training episodes continue from initial state {begun} of each env worker"
+                 if saved_begun is not None else
                  "the checkpoint does not say how many initial states the training envs began: they start again "
                  "from env.train_seed"))
     elif gae is not None:  # a fresh run: the critic first learns the demonstrations' returns (value.pretrain_steps > 0)
