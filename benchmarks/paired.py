@@ -49,7 +49,7 @@ from mmada_rl.evaluation import wilson_interval  # noqa: E402
 
 def read_episodes(path: Path) -> dict:
     """One source's episodes: ``{source, checkpoint, seeds: [env seed], success: [bool]}``; the source is an
-    ``eval.json`` or a fine-tuning run's evaluation (``RUN``, ``RUN@S``)."""
+    ``eval.json`` or a fine-tuning or online RL baseline run's evaluation (``RUN``, ``RUN@S``)."""
     run, at_step, _ = split_tags(path)
     if run.is_dir():
         return read_run_episodes(path, run, at_step)
@@ -60,7 +60,13 @@ def read_episodes(path: Path) -> dict:
     episodes = data.get("per_episode")
     if "eval/success_once" not in data or not episodes:
         raise ValueError(f"{path} records no episodes (per_episode): pair evaluations written by `mmada-rl eval`.")
-    return {"source": str(path), "checkpoint": data.get("checkpoint"),
+    return _episodes(path, data.get("checkpoint"), episodes)
+
+
+def _episodes(source: Path, checkpoint: str | None, episodes: list[dict]) -> dict:
+    """``per_episode`` records (``seed``, ``success_once``; an ``eval.json``'s or an ``eval_history.json`` record's)
+    as :func:`read_episodes` returns them."""
+    return {"source": str(source), "checkpoint": checkpoint,
             "seeds": [int(e["seed"]) for e in episodes], "success": [bool(e["success_once"]) for e in episodes]}
 
 
@@ -76,8 +82,7 @@ def read_run_episodes(source: Path, run: Path, at_step: int | None) -> dict:
     if not episodes:
         raise ValueError(f"{source}: its evaluation at env step {chosen['step']} keeps no episodes (per_episode, "
                          f"which older runs did not record): evaluate its checkpoint with `mmada-rl eval`.")
-    return {"source": str(source), "checkpoint": str(run),
-            "seeds": [int(e["seed"]) for e in episodes], "success": [bool(e["success_once"]) for e in episodes]}
+    return _episodes(source, str(run), episodes)
 
 
 def mcnemar_exact(only_a: int, only_b: int) -> float:
