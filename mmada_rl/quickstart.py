@@ -1,10 +1,16 @@
 """``mmada-rl quickstart``: demonstrations → tokenizers → pretraining → evaluation → report.
 
 Runs the pretraining recipe of this source checkout (``recipes/pretrain``) with
-its ``quickstart`` config (``--full``: ``maniskill``), then evaluates the final
-checkpoint on fixed evaluation seeds and writes ``report.md`` with a learning
-curve and a grid of predicted goal images beside the real frames. Every stage
-resumes: re-running the command after an interruption continues where it stopped.
+the task's CPU config (``pickcube_cpu`` for PickCube-v1, ``pushcube_cpu`` for
+PushCube-v1): 100 DART demonstrations (collected into the config's ``data.dir``
+when missing, shared with the recipe's own runs), tokenizers fitted on them and
+the denoiser pretrained, shortened by default (the config's width halved for
+PickCube-v1, fewer steps) so that it fits in about half an hour on 2 CPU cores;
+``--full`` runs the config as it is, the recipe of the README's figures. Then it
+evaluates the final checkpoint on fixed evaluation seeds and writes ``report.md``
+with a learning curve and a grid of predicted goal images beside the real
+frames. Every stage resumes: re-running the command after an interruption
+continues where it stopped.
 """
 from __future__ import annotations
 
@@ -16,9 +22,26 @@ import time
 from pathlib import Path
 
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "pretrain" / "pretrain.py"
+CONFIGS = {"PickCube-v1": "pickcube_cpu", "PushCube-v1": "pushcube_cpu"}  # each task's config in recipes/pretrain/config
+SHORT_STEPS = 3000  # pretraining steps of the default (not --full) run
+SHORT_OVERRIDES = {"PickCube-v1": ["model.denoiser_overrides.d_model=128"]}  # a quarter of the d = 256 step time
 
 
-def _train(args: argparse.Namespace, run_dir: Path, demos: Path) -> None:
+def recipe_overrides(args: argparse.Namespace, run_dir: Path) -> list[str]:
+    """The pretraining recipe's command-line overrides for this quickstart."""
+    overrides = [f"run_dir={run_dir}", "eval.episodes=0"]  # evaluated after training, with the goal-image grid
+    if args.demos:
+        overrides.append(f"data.dir={args.demos}")
+    if args.episodes is not None:
+        overrides.append(f"data.collect_episodes={args.episodes}")
+    if not args.full:
+        overrides += [f"optim.total_steps={SHORT_STEPS}", *SHORT_OVERRIDES.get(args.task, [])]
+    if args.steps:
+        overrides.append(f"optim.total_steps={args.steps}")
+    return overrides
+
+
+def _train(args: argparse.Namespace, run_dir: Path) -> None:
     from mmada_rl.training import latest_checkpoint
 
     if (run_dir / "final.json").exists():
@@ -26,14 +49,10 @@ def _train(args: argparse.Namespace, run_dir: Path, demos: Path) -> None:
         return
     if not RECIPE.exists():
         raise FileNotFoundError(f"{RECIPE} not found: the quickstart runs the recipes of a source checkout of mmada_rl.")
-    overrides = [f"run_dir={run_dir}", f"data.dir={demos}", f"env.task={args.task}", "eval.episodes=0"]
-    if not args.full:
-        overrides.append(f"data.collect_episodes={args.episodes}")
-    if args.steps:
-        overrides.append(f"optim.total_steps={args.steps}")
+    overrides = recipe_overrides(args, run_dir)
     if latest_checkpoint(run_dir) is not None:
         overrides.append("checkpoint.resume=true")
-    cmd = [sys.executable, str(RECIPE), "--config-name", "maniskill" if args.full else "quickstart", *overrides]
+    cmd = [sys.executable, str(RECIPE), "--config-name", CONFIGS[args.task], *overrides]
     print("[quickstart] " + " ".join(cmd[1:]))
     subprocess.run(cmd, check=True)
 
@@ -45,17 +64,22 @@ def _report(out: Path, run_dir: Path, demos: Path, result, seconds: float, args:
     history = json.loads((run_dir / "history.json").read_text())
     curve = learning_curve(history, out / "learning_curve.png")
     buf = DemoBuffer.open(demos)
+    dart = f"executed with DART action noise {buf.metadata.action_noise:g}, " if buf.metadata.action_noise else ""
     metrics = result.to_dict()
     lines = [
         f"# mmada_rl quickstart: {args.task}",
         "",
-        f"* demonstrations: {buf.metadata.num_episodes} motion-planner episodes, {len(buf)} transitions "
-        f"({buf.metadata.control_mode}, {buf.metadata.image_size}×{buf.metadata.image_size} RGB + proprio + instruction)",
+        f"* demonstrations: {buf.metadata.num_episodes} motion-planner episodes in {demos}, {len(buf)} transitions "
+        f"({dart}{buf.metadata.control_mode}, {buf.metadata.image_size}×{buf.metadata.image_size} RGB through a "
+        f"{buf.metadata.camera_fov or 90}° camera + proprio + instruction)",
+        f"* pretraining: `recipes/pretrain/pretrain.py --config-name {CONFIGS[args.task]} {' '.join(recipe_overrides(args, run_dir))}`",
         f"* pretraining: {history[-1]['step'] if history else 0} steps, final action-token accuracy "
         f"{history[-1].get('train/action_accuracy', float('nan')):.3f} at masked positions" if history else "* pretraining: no steps logged",
         f"* wall-clock time of this run: {seconds / 60:.1f} min",
         "",
         f"## Evaluation ({int(metrics.get('eval/episodes', 0))} episodes on fixed evaluation seeds, greedy decoding)",
+        "",
+        f"Reproduce: `mmada-rl eval --checkpoint {run_dir} --task {args.task} --episodes {args.eval_episodes}`",
         "",
         metrics_table(metrics),
         "",
@@ -72,18 +96,20 @@ def _report(out: Path, run_dir: Path, demos: Path, result, seconds: float, args:
 
 def run(args: argparse.Namespace) -> int:
     import torch
+    from omegaconf import OmegaConf
 
     from mmada_rl.evaluation import evaluate
     from mmada_rl.training import latest_checkpoint
 
+    if args.episodes is not None and args.episodes < 1:
+        raise SystemExit(f"mmada-rl quickstart: --episodes must be positive, got {args.episodes}.")
     torch.set_num_threads(1)  # more torch threads contend with the simulator on 2 cores
     start = time.perf_counter()
-    out = Path(args.out)
+    out = Path(args.out or ("runs/quickstart_full" if args.full else "runs/quickstart"))
     out.mkdir(parents=True, exist_ok=True)
-    demos, run_dir = out / "demos", out / "pretrain"
-    if args.full:
-        demos = Path("data") / args.task
-    _train(args, run_dir, demos)
+    run_dir = out / "pretrain"
+    _train(args, run_dir)
+    demos = Path(OmegaConf.load(run_dir / ".hydra" / "config.yaml").data.dir)
     ckpt = latest_checkpoint(run_dir)
     print(f"[quickstart] evaluating {ckpt} on {args.eval_episodes} episodes")
     result = evaluate(ckpt, args.task, episodes=args.eval_episodes, out_dir=out / "eval", goal_grid=True)
@@ -100,10 +126,19 @@ def add_parser(sub) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--task", default="PickCube-v1", help="ManiSkill3 task (default: %(default)s)")
-    p.add_argument("--episodes", type=int, default=20, help="planner demonstrations to collect (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=None, help="pretraining steps (default: the config's, 800 for the quickstart)")
-    p.add_argument("--eval-episodes", type=int, default=10, help="evaluation episodes (default: %(default)s)")
-    p.add_argument("--out", default="runs/quickstart", help="output directory (default: %(default)s)")
-    p.add_argument("--full", action="store_true", help="the full-length run: 100 demos in data/TASK, maniskill.yaml (hours on 2 cores)")
+    p.add_argument("--task", default="PickCube-v1", choices=sorted(CONFIGS),
+                   help="ManiSkill3 task; its config: " + ", ".join(f"{t}: {c}.yaml" for t, c in CONFIGS.items())
+                   + " (default: %(default)s; another task: recipes/pretrain/pretrain.py --config-name maniskill_cpu "
+                   "env.task=TASK)")
+    p.add_argument("--demos", default=None,
+                   help="demonstration buffer directory (default: the config's data.dir, e.g. data/dart/PickCube-v1-fov45; "
+                        "collected there when missing and shared with the recipe's runs)")
+    p.add_argument("--episodes", type=int, default=None, help="DART planner demonstrations to collect (default: the config's, 100)")
+    p.add_argument("--steps", type=int, default=None,
+                   help=f"pretraining steps (default: {SHORT_STEPS}, with --full the config's 5000)")
+    p.add_argument("--eval-episodes", type=int, default=50, help="evaluation episodes (default: %(default)s)")
+    p.add_argument("--out", default=None, help="output directory (default: runs/quickstart, with --full runs/quickstart_full)")
+    p.add_argument("--full", action="store_true",
+                   help="the config as it is, the recipe of the README's figures (PickCube-v1: d_model = 256, "
+                        "about 70 minutes of pretraining on 2 cores)")
     p.set_defaults(func=run)

@@ -69,3 +69,25 @@ def test_bad_input_is_a_one_line_error(argv, message, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"mmada-rl {argv[0]}: error: ") and message in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_quickstart_runs_each_tasks_config_shortened_unless_full():
+    """The quickstart's pretraining command: the task's CPU config, shortened by default, as it is with
+    ``--full``; ``--steps``, ``--episodes`` and ``--demos`` reach the recipe; a task without a config is refused."""
+    from mmada_rl.quickstart import CONFIGS, SHORT_STEPS, recipe_overrides
+
+    def overrides(*argv):
+        args = build_parser().parse_args(["quickstart", *argv])
+        return args, recipe_overrides(args, "RUN")
+
+    args, short = overrides()
+    assert (args.task, CONFIGS[args.task]) == ("PickCube-v1", "pickcube_cpu")
+    assert short == ["run_dir=RUN", "eval.episodes=0", f"optim.total_steps={SHORT_STEPS}", "model.denoiser_overrides.d_model=128"]
+    assert overrides("--full")[1] == ["run_dir=RUN", "eval.episodes=0"]  # the config's 5000 steps at d_model = 256
+    args, push = overrides("--task", "PushCube-v1", "--steps", "10", "--episodes", "3", "--demos", "D")
+    assert CONFIGS[args.task] == "pushcube_cpu"
+    assert push == ["run_dir=RUN", "eval.episodes=0", "data.dir=D", "data.collect_episodes=3",
+                    f"optim.total_steps={SHORT_STEPS}", "optim.total_steps=10"]  # the last one given wins in Hydra
+    with pytest.raises(SystemExit) as exit_:
+        build_parser().parse_args(["quickstart", "--task", "StackCube-v1"])
+    assert exit_.value.code == 2

@@ -10,9 +10,12 @@ from mmada_rl.envs.maniskill import EnvConfig
 __all__ = ["open_demos"]
 
 
-def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, prefix: str = "") -> DemoBuffer:
+def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, action_noise: float = 0.0,
+               prefix: str = "") -> DemoBuffer:
     """The buffer in ``path``, checked against ``env``; planner demonstrations are collected first
-    while it holds fewer than ``collect_episodes`` episodes (0: never collect).
+    while it holds fewer than ``collect_episodes`` episodes (0: never collect), executed with
+    ``action_noise`` (DART, as ``mmada-rl collect --action-noise``; a buffer recorded with another
+    noise is not topped up).
 
     Raises:
         BufferMismatchError: the buffer's task, control mode, observation mode or
@@ -24,8 +27,9 @@ def open_demos(path: str | Path, env: EnvConfig, *, collect_episodes: int = 0, p
     if collect_episodes and have < collect_episodes:
         from mmada_rl.data.collect import collect
 
-        print(f"{prefix}collecting {collect_episodes - have} planner demonstrations into {path}")
-        collect(path, env, episodes=collect_episodes)
+        noise = f" (DART action noise {action_noise:g})" if action_noise else ""
+        print(f"{prefix}collecting {collect_episodes - have} planner demonstrations{noise} into {path}")
+        collect(path, env, episodes=collect_episodes, action_noise=action_noise)
     rgb = env.obs_mode == "rgb"
     return DemoBuffer.open(path, task=env.task, control_mode=env.control_mode, obs_mode=env.obs_mode,
                            image_size=env.image_size if rgb else None, camera_fov=env.camera_fov if rgb else UNCHECKED)

@@ -566,7 +566,8 @@ def make_online_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
 def open_demo_buffer(cfg: DictConfig, model: MMaDAModel) -> DemoBuffer:
     env = EnvConfig(task=cfg.env.task, image_size=model.image_size, camera_fov=model.config.camera_fov_for(cfg.env.task),
                     control_mode=cfg.env.control_mode)
-    return open_demos(cfg.demos.dir, env, collect_episodes=int(cfg.demos.collect_episodes), prefix=f"{PREFIX} ")
+    return open_demos(cfg.demos.dir, env, collect_episodes=int(cfg.demos.collect_episodes),
+                      action_noise=float(cfg.demos.action_noise), prefix=f"{PREFIX} ")
 
 
 def split_batch(cfg: DictConfig) -> tuple[int, int]:

@@ -55,7 +55,8 @@ def make_demo_buffers(cfg: DictConfig) -> list[DemoBuffer]:
         raise ValueError(f"a multi-task run needs one buffer per task: put {{task}} in data.dir (got {directory!r}), "
                          "e.g. data.dir='data/{task}', or map each task to its buffer.")
     return [open_demos(task_dir(directory, task), make_env_config(cfg, task),
-                       collect_episodes=int(cfg.data.collect_episodes), prefix="[pretrain] ") for task in tasks]
+                       collect_episodes=int(cfg.data.collect_episodes),
+                       action_noise=float(cfg.data.action_noise), prefix="[pretrain] ") for task in tasks]
 
 
 def make_tokenizers(cfg: DictConfig, buffers: list[DemoBuffer], run_dir: Path) -> Tokenizers:
