@@ -82,12 +82,12 @@ def test_quickstart_runs_each_tasks_config_shortened_unless_full():
 
     args, short = overrides()
     assert (args.task, CONFIGS[args.task]) == ("PickCube-v1", "pickcube_cpu")
-    assert short == ["run_dir=RUN", "eval.episodes=0", f"optim.total_steps={SHORT_STEPS}", "model.denoiser_overrides.d_model=128"]
+    assert short == ["run_dir=RUN", "eval.episodes=0", "model.denoiser_overrides.d_model=128", f"optim.total_steps={SHORT_STEPS}"]
     assert overrides("--full")[1] == ["run_dir=RUN", "eval.episodes=0"]  # the config's 5000 steps at d_model = 256
     args, push = overrides("--task", "PushCube-v1", "--steps", "10", "--episodes", "3", "--demos", "D")
     assert CONFIGS[args.task] == "pushcube_cpu"
-    assert push == ["run_dir=RUN", "eval.episodes=0", "data.dir=D", "data.collect_episodes=3",
-                    f"optim.total_steps={SHORT_STEPS}", "optim.total_steps=10"]  # the last one given wins in Hydra
+    assert push == ["run_dir=RUN", "eval.episodes=0", "data.dir=D", "data.collect_episodes=3", "optim.total_steps=10"]
+    assert overrides("--full", "--steps", "7")[1] == ["run_dir=RUN", "eval.episodes=0", "optim.total_steps=7"]
     with pytest.raises(SystemExit) as exit_:
         build_parser().parse_args(["quickstart", "--task", "StackCube-v1"])
     assert exit_.value.code == 2
