@@ -74,8 +74,8 @@ def _report(out: Path, run_dir: Path, demos: Path, result, seconds: float, args:
         "",
         f"* demonstrations: {buf.metadata.num_episodes} motion-planner episodes in {demos}, {len(buf)} transitions "
         f"({dart}{buf.metadata.control_mode}, {buf.metadata.image_size}×{buf.metadata.image_size} RGB through a "
-        f"{buf.metadata.camera_fov or 90}° camera + proprio + instruction)",
-        f"* pretraining: `recipes/pretrain/pretrain.py --config-name {CONFIGS[args.task]} {' '.join(recipe_overrides(args, run_dir))}`",
+        f"{buf.metadata.camera_fov or 90:g}° camera + proprio + instruction)",
+        f"* pretraining command: `recipes/pretrain/pretrain.py --config-name {CONFIGS[args.task]} {' '.join(recipe_overrides(args, run_dir))}`",
         f"* pretraining: {history[-1]['step'] if history else 0} steps, final action-token accuracy "
         f"{history[-1].get('train/action_accuracy', float('nan')):.3f} at masked positions" if history else "* pretraining: no steps logged",
         f"* wall-clock time of this run: {seconds / 60:.1f} min",
