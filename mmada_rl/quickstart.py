@@ -148,5 +148,5 @@ def add_parser(sub) -> None:
     p.add_argument("--out", default=None, help="output directory (default: runs/quickstart, with --full runs/quickstart_full)")
     p.add_argument("--full", action="store_true",
                    help="the config as it is, the recipe of the README's figures (PickCube-v1: d_model = 256, "
-                        "about 70 minutes of pretraining on 2 cores)")
+                        "about 90 minutes of pretraining on 2 cores)")
     p.set_defaults(func=run)
