@@ -104,10 +104,10 @@ def _report(out: Path, run_dir: Path, demos: Path, result, seconds: float, args:
 
 def run(args: argparse.Namespace) -> int:
     import torch
-    from omegaconf import OmegaConf
 
     from mmada_rl.evaluation import evaluate
     from mmada_rl.training import latest_checkpoint
+    from mmada_rl.training.checkpoint import CONFIG_FILE
 
     if args.episodes is not None and args.episodes < 1:
         raise SystemExit(f"mmada-rl quickstart: --episodes must be positive, got {args.episodes}.")
@@ -117,8 +117,8 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     run_dir = out / "pretrain"
     _train(args, run_dir)
-    demos = Path(OmegaConf.load(run_dir / ".hydra" / "config.yaml").data.dir)
     ckpt = latest_checkpoint(run_dir)
+    demos = Path(json.loads((ckpt / CONFIG_FILE).read_text())["data"]["dir"])  # the buffer the run trained on
     print(f"[quickstart] evaluating {ckpt} on {args.eval_episodes} episodes")
     result = evaluate(ckpt, args.task, episodes=args.eval_episodes, out_dir=out / "eval", goal_grid=True)
     print(result.table())
