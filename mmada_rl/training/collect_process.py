@@ -82,6 +82,13 @@ def _error(err: BaseException) -> tuple[str, str]:
     return "error", f"{type(err).__name__}: {err}\n--- in the collector process ---\n{traceback.format_exc()}"
 
 
+def _set_states(generators: dict[str, torch.Generator], states: dict[str, torch.Tensor]) -> None:
+    """Set each of ``generators`` that ``states`` names to its state (the other side's generators of the same names)."""
+    for name, state in states.items():
+        if name in generators:
+            generators[name].set_state(state)
+
+
 def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> None:
     """The collector process: build the parts, then one batch per request until ``None`` or the pipe closes."""
     torch.set_num_threads(num_threads)
@@ -102,9 +109,7 @@ def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> Non
             weights, rng_states = request
             try:
                 parts.policy.load_state_dict(weights)
-                for name, state in rng_states.items():
-                    if name in parts.generators:
-                        parts.generators[name].set_state(state)
+                _set_states(parts.generators, rng_states)
                 start = time.perf_counter()
                 batch = next(parts.batches)
                 seconds = time.perf_counter() - start
@@ -186,9 +191,7 @@ class CollectAheadProcess:
                 self._result = ("lost", err)
             kind, payload = self._result
             if kind == "batch":  # (batch, seconds, RNG states by name)
-                for name, state in payload[2].items():
-                    if name in self._generators:
-                        self._generators[name].set_state(state)
+                _set_states(self._generators, payload[2])
 
     def take(self) -> tuple[Any, float]:
         """The next batch and the seconds its collection took in the process (not the wait, which may be shorter).
