@@ -74,7 +74,13 @@ def test_bad_input_is_a_one_line_error(argv, message, tmp_path, capsys):
 def test_quickstart_runs_each_tasks_config_shortened_unless_full():
     """The quickstart's pretraining command: the task's CPU config, shortened by default, as it is with
     ``--full``; ``--steps``, ``--episodes`` and ``--demos`` reach the recipe; a task without a config is refused."""
-    from mmada_rl.quickstart import CONFIGS, SHORT_STEPS, recipe_overrides
+    from mmada_rl.quickstart import CONFIGS, FINETUNE_RESULTS, RECIPE, SHORT_STEPS, recipe_overrides
+
+    recipes = RECIPE.parents[1]  # the report's next step names the fine-tuning config of the same name
+    for config in CONFIGS.values():
+        assert (recipes / "pretrain" / "config" / f"{config}.yaml").exists()
+        assert (recipes / "finetune" / "config" / f"{config}.yaml").exists()
+    assert set(FINETUNE_RESULTS) == set(CONFIGS)
 
     def overrides(*argv):
         args = build_parser().parse_args(["quickstart", *argv])

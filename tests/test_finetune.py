@@ -1493,19 +1493,25 @@ def test_replayed_steps_benchmark_measures_cost_and_fidelity(toy_pretrain_run, t
                     "--steps", str(record["num_steps"]), "--out", str(tmp_path)])
 
 
-def test_pickcube_config_is_the_recorded_method_of_the_headline_lift():
+@pytest.mark.parametrize("config, method, task, demos", [
+    ("pickcube_cpu", "mmada_return_to_go_noise_keep_lr1e4_gripper_ema", "PickCube-v1", "data/dart/PickCube-v1-fov45"),
+    ("pushcube_cpu", "mmada_return_to_go_noise_keep_lr1e4_ema_demos075", "PushCube-v1", "data/dart/PushCube-v1-fov60"),
+])
+def test_task_config_is_the_recorded_method_of_its_figure(config, method, task, demos):
     """``--config-name pickcube_cpu`` is ``maniskill.yaml`` with the overrides of the comparison's
-    ``mmada_return_to_go_noise_keep_lr1e4_gripper_ema`` (the 0.54 -> 0.74 runs), on the pretraining config's
+    ``mmada_return_to_go_noise_keep_lr1e4_gripper_ema`` (the 0.54 -> 0.74 runs), ``pushcube_cpu`` with those of
+    ``mmada_return_to_go_noise_keep_lr1e4_ema_demos075`` (the 0.93 -> 0.90 runs), each on its pretraining config's
     DART demonstrations and run names, evaluated every 10k env steps."""
     from hydra import compose, initialize_config_dir
 
     compare = load_script("benchmarks/compare/compare.py")
-    args = compare.METHODS["mmada_return_to_go_noise_keep_lr1e4_gripper_ema"][2]
+    args = compare.METHODS[method][2]
     assert args[:3] == ["recipes/finetune/finetune.py", "--config-name", "maniskill"]
     with initialize_config_dir(config_dir=str(RECIPE.parent / "config"), version_base=None):
-        ours, recorded = compose(config_name="pickcube_cpu"), compose(config_name="maniskill", overrides=args[3:])
-    assert (ours.pretrained, ours.demos.dir, ours.demos.action_noise) == ("runs/pickcube_cpu_s0", "data/dart/PickCube-v1-fov45", 0.1)
-    assert (ours.eval.interval_env_steps, ours.eval.episodes) == (10000, 50)
+        # the comparison names the task on each run's command line
+        ours, recorded = compose(config_name=config), compose(config_name="maniskill", overrides=[*args[3:], f"env.task={task}"])
+    assert (ours.pretrained, ours.demos.dir, ours.demos.action_noise) == (f"runs/{config}_s0", demos, 0.1)
+    assert (ours.env.task, ours.eval.interval_env_steps, ours.eval.episodes) == (task, 10000, 50)
     for cfg in (ours, recorded):  # what the comparison sets per run, and where the files go
         for key in ("run_dir", "pretrained", "demos.dir", "demos.action_noise", "eval.interval_env_steps", "eval.episodes"):
             OmegaConf.update(cfg, key, None)
