@@ -379,6 +379,22 @@ def test_task_configs_hold_the_recipe_of_their_figures(config, task, fov, width)
     assert (cfg.tokenizers, cfg.optim.lr, cfg.replay_buffer) == (base.tokenizers, base.optim.lr, base.replay_buffer)
 
 
+def test_multitask_config_collects_each_tasks_dart_buffer():
+    """``multitask_cpu.yaml`` reads (and, when missing, collects) the per-task configs' DART buffers, each through
+    its task's camera, so one command runs on a fresh machine."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "recipes" / "pretrain" / "config"), version_base=None):
+        cfg = compose(config_name="multitask_cpu")
+        per_task = {c.env.task: c for c in (compose(config_name="pickcube_cpu"), compose(config_name="pushcube_cpu"))}
+    assert (cfg.data.collect_episodes, cfg.data.action_noise) == (100, 0.1)
+    assert list(cfg.tasks) == list(cfg.data.dir) == list(cfg.env.camera_fov)
+    for task, c in per_task.items():
+        assert (cfg.data.dir[task], cfg.env.camera_fov[task]) == (c.data.dir, c.env.camera_fov)
+        assert (cfg.data.collect_episodes, cfg.data.action_noise) == (c.data.collect_episodes, c.data.action_noise)
+    assert (cfg.data.dir["StackCube-v1"], cfg.env.camera_fov["StackCube-v1"]) == ("data/dart/StackCube-v1-fov45", 45)
+
+
 def test_pickcube_config_collects_dart_demonstrations_and_trains(tmp_path):
     """``--config-name pickcube_cpu`` end to end, shortened: the missing buffer is collected with the DART noise
     through the 45° camera, the goal offsets enter the proprio tokenizer, and the saved policy holds the recipe."""
