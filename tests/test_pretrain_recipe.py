@@ -397,15 +397,16 @@ def test_multitask_config_collects_each_tasks_dart_buffer():
 
 def test_pickcube_config_collects_dart_demonstrations_and_trains(tmp_path):
     """``--config-name pickcube_cpu`` end to end, shortened: the missing buffer is collected with the DART noise
-    through the 45° camera, the goal offsets enter the proprio tokenizer, and the saved policy holds the recipe."""
+    through the 45° camera (by two worker processes), the goal offsets enter the proprio tokenizer, and the saved policy holds the recipe."""
     from mmada_rl.data import DemoBuffer
 
     run_dir, demos = tmp_path / "run", tmp_path / "demos"
     proc = run_recipe("--config-name", "pickcube_cpu", f"run_dir={run_dir}", f"data.dir={demos}", "data.collect_episodes=1",
+                      "data.collect_workers=2",
                       "optim.total_steps=2", "optim.warmup_steps=1", "eval.episodes=0", "tokenizers.image_steps=2",
                       "tokenizers.action_steps=2", "replay_buffer.batch_size=4", "checkpoint.interval=2")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "collecting 1 planner demonstrations (DART action noise 0.1)" in proc.stdout
+    assert f"collecting 1 planner demonstrations (DART action noise 0.1) into {demos} (2 processes side by side)" in proc.stdout
     meta = DemoBuffer.open(demos).metadata
     assert (meta.num_episodes, meta.action_noise, meta.camera_fov) == (1, 0.1, 45)
     saved = json.loads((latest_checkpoint(run_dir) / "model" / "model.json").read_text())["config"]

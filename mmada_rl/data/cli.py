@@ -34,6 +34,7 @@ def env_config_from_args(args: argparse.Namespace) -> EnvConfig:
 
 def _run_collect(args: argparse.Namespace) -> int:
     from mmada_rl.data.collect import collect
+    from mmada_rl.data.collect_workers import CollectionWorkerError
 
     try:
         result = collect(
@@ -47,6 +48,7 @@ def _run_collect(args: argparse.Namespace) -> int:
             action_noise=args.action_noise,
             seed=args.seed,
             max_attempts=args.max_attempts,
+            workers=args.workers,
         )
     except KeyboardInterrupt:
         from mmada_rl.data.buffer import DemoBuffer
@@ -55,7 +57,7 @@ def _run_collect(args: argparse.Namespace) -> int:
         print(f"\ninterrupted: {buf.metadata.num_episodes} finished episodes are kept in {args.out}; "
               "run the same command again to resume.", file=sys.stderr)
         return 130
-    except (FileNotFoundError, ValueError) as err:
+    except (FileNotFoundError, ValueError, CollectionWorkerError) as err:
         print(f"mmada-rl collect: error: {err}", file=sys.stderr)
         return 2
     print(result.buffer.summary())
@@ -151,6 +153,12 @@ def add_parser(sub) -> None:
                    "demonstrations show recoveries (DART; default: %(default)s, no noise).")
     p.add_argument("--seed", type=int, default=0, help="first env seed of a new buffer (default: %(default)s).")
     p.add_argument("--max-attempts", type=int, default=None, help="give up after this many attempts (default: 3 × missing episodes + 10).")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes trying episodes side by side, each with its own simulator (about one per CPU core). "
+                        "The seeds are tried and kept in the order one process takes them; an episode can differ from "
+                        "one process's in the last digits, since a simulator carries a little state from one attempt "
+                        "to the next, and a given number of workers records the same buffer every time "
+                        "(default: %(default)s).")
     p.set_defaults(func=_run_collect)
 
     p = sub.add_parser(

@@ -1,14 +1,17 @@
 """Fill a buffer directory with episodes from a source, resumably."""
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Sequence
 
 from tqdm.auto import tqdm
 
 from mmada_rl.data.buffer import BufferMismatchError, DemoBuffer
+from mmada_rl.data.collect_workers import parallel_attempts
 from mmada_rl.data.metadata import BufferMetadata
 from mmada_rl.data.sources import CheckpointSource, PlannerSource, PolicySource
 from mmada_rl.envs.maniskill import EnvConfig
@@ -72,6 +75,7 @@ def collect(
     action_noise: float = 0.0,
     seed: int = 0,
     max_attempts: int | None = None,
+    workers: int = 1,
     progress: bool = True,
 ) -> CollectResult:
     """Collect until ``out`` holds ``episodes`` episodes; resume what is there.
@@ -97,10 +101,18 @@ def collect(
             this std on the arm (DART) and store the exact ones (see :class:`NoisyExecution`).
         seed: first env seed of a new buffer (a resumed one continues from its ``next_seed``).
         max_attempts: stop after this many tries in this run (default: 3 × missing episodes + 10).
+        workers: processes trying the next seeds side by side, each with its own simulator
+            (:func:`~mmada_rl.data.collect_workers.parallel_attempts`); their attempts are taken in
+            seed order, as one process takes them (the episodes can differ from one process's in the last
+            digits: see that module). Not with ``torchrl_policy``.
     """
     if episodes < 1:
         raise ValueError(f"episodes must be positive, got {episodes}.")
+    if workers < 1 or (workers > 1 and torchrl_policy is not None):
+        raise ValueError(f"workers must be a positive number of processes (1 with a TorchRL policy object, which "
+                         f"the spawned workers cannot rebuild), got {workers}.")
     only_success = (policy in ("planner", "scripted") and torchrl_policy is None) if only_success is None else only_success
+    cfg_in = cfg
     source = make_source(cfg, policy, torchrl_policy, keep_after_success, action_noise, checkpoint)
     cfg = source.cfg  # the env the source records in (a checkpoint's: its camera and image size)
     meta = BufferMetadata(
@@ -141,10 +153,16 @@ def collect(
     result = CollectResult(buffer, 0, 0, 0, 0, 0.0, {})
     start = time.perf_counter()
     bar = tqdm(total=episodes, initial=buffer.metadata.num_episodes, unit="ep", desc=f"collect {cfg.task}", disable=not progress)
+    first = buffer.metadata.next_seed
+    if workers > 1:  # each worker builds its own source from the same arguments; this one served the metadata
+        source.close()
+        attempts = parallel_attempts(partial(make_source, cfg_in, policy, None, keep_after_success, action_noise,
+                                             checkpoint), workers, first, max_attempts)
+    else:
+        attempts = ((seed, source(seed)) for seed in itertools.count(first))
     try:
         while buffer.metadata.num_episodes < episodes and result.attempts < max_attempts:
-            env_seed = buffer.metadata.next_seed
-            attempt = source(env_seed)
+            env_seed, attempt = next(attempts)
             result.attempts += 1
             result.successes += int(attempt.success)
             buffer.metadata.attempts += 1
@@ -167,7 +185,9 @@ def collect(
                 ep_per_min=f"{60 * result.new_episodes / max(elapsed, 1e-9):.1f}",
             )
     finally:
+        attempts.close()  # stops the workers
         bar.close()
         result.seconds = time.perf_counter() - start
-        source.close()
+        if workers == 1:
+            source.close()
     return result

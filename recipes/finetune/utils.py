@@ -567,7 +567,8 @@ def open_demo_buffer(cfg: DictConfig, model: MMaDAModel) -> DemoBuffer:
     env = EnvConfig(task=cfg.env.task, image_size=model.image_size, camera_fov=model.config.camera_fov_for(cfg.env.task),
                     control_mode=cfg.env.control_mode)
     return open_demos(cfg.demos.dir, env, collect_episodes=int(cfg.demos.collect_episodes),
-                      action_noise=float(cfg.demos.action_noise), prefix=f"{PREFIX} ")
+                      action_noise=float(cfg.demos.action_noise), workers=int(cfg.demos.collect_workers),
+                      prefix=f"{PREFIX} ")
 
 
 def split_batch(cfg: DictConfig) -> tuple[int, int]:

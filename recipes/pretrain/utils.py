@@ -56,7 +56,8 @@ def make_demo_buffers(cfg: DictConfig) -> list[DemoBuffer]:
                          "e.g. data.dir='data/{task}', or map each task to its buffer.")
     return [open_demos(task_dir(directory, task), make_env_config(cfg, task),
                        collect_episodes=int(cfg.data.collect_episodes),
-                       action_noise=float(cfg.data.action_noise), prefix="[pretrain] ") for task in tasks]
+                       action_noise=float(cfg.data.action_noise), workers=int(cfg.data.collect_workers),
+                       prefix="[pretrain] ") for task in tasks]
 
 
 def make_tokenizers(cfg: DictConfig, buffers: list[DemoBuffer], run_dir: Path) -> Tokenizers:
