@@ -12,9 +12,10 @@ Not bit for bit: a simulator carries a little state from one attempt to the
 next, so an episode can differ in the last digits, growing after contacts, from
 the one a simulator that had run other seeds before records (measured: of three
 PickCube-v1 DART episodes, the second, tried by a fresh simulator, differed from
-its 42nd step on, by at most 0.0013 in an action and 0.025 in the state). Each worker takes a fixed share of the seeds (worker ``i`` of
-``n``: every ``n``-th from the ``i``-th), so one number of workers records the
-same buffer from run to run.
+its 42nd step on, by at most 0.0013 in an action and 0.025 in the state). Each
+worker takes a fixed share of the seeds (worker ``i`` of ``n``: every ``n``-th
+from the ``i``-th), so one number of workers records the same buffer from run
+to run.
 """
 from __future__ import annotations
 
