@@ -85,17 +85,21 @@ def test_stopping_early_stops_the_workers_and_a_limit_bounds_the_seeds():
         next(parallel_attempts(_MakeToy(), workers=0, first_seed=0, limit=1))
 
 
-@pytest.mark.parametrize("make, message, before", [
-    (_MakeToy(fail_seed=3), "seed 3: RuntimeError: the planner found no path", [0, 1, 2]),
-    (_MakeToy(exit_seed=2), r"a collection worker ended \(exit code 7\) while attempting seed 2", [0, 1]),
-    (_MakeToy(fail_to_build=True), "ValueError: unknown task 'NoSuchTask-v1'", []),
+@pytest.mark.parametrize("make, message, before, raised_at", [
+    (_MakeToy(fail_seed=3), "seed 3: RuntimeError: the planner found no path", [0, 1, 2],
+     'raise RuntimeError("the planner found no path")'),
+    (_MakeToy(exit_seed=2), r"a collection worker ended \(exit code 7\) while attempting seed 2", [0, 1], None),
+    (_MakeToy(fail_to_build=True), "ValueError: unknown task 'NoSuchTask-v1'", [],
+     """raise ValueError("unknown task 'NoSuchTask-v1'")"""),
 ])
-def test_a_failing_worker_ends_the_attempts_with_its_seed_and_message(make, message, before):
+def test_a_failing_worker_ends_the_attempts_with_its_seed_and_message(make, message, before, raised_at):
     seen = []
-    with pytest.raises(CollectionWorkerError, match=message):
+    with pytest.raises(CollectionWorkerError, match=message) as failure:
         for seed, _ in parallel_attempts(make, workers=2, first_seed=0, limit=6):
             seen.append(seed)
     assert seen == before  # every attempt before the failing seed was handed back
+    if raised_at is not None:  # the worker's traceback travels with its message, down to the line that raised
+        assert "--- in the collection worker ---" in str(failure.value) and raised_at in str(failure.value)
 
 
 @pytest.mark.slow

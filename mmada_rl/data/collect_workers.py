@@ -20,6 +20,7 @@ to run.
 from __future__ import annotations
 
 import multiprocessing as mp
+import traceback
 from multiprocessing.connection import Connection, wait
 from typing import Callable, Iterator
 
@@ -28,6 +29,11 @@ from mmada_rl.data.sources import Attempt
 
 class CollectionWorkerError(RuntimeError):
     """A collection worker failed (its message) or ended without answering."""
+
+
+def _failure(err: Exception) -> tuple[str, str]:
+    """The message a worker sends for ``err``: its type, text and the worker's traceback (lost in the parent)."""
+    return "error", f"{type(err).__name__}: {err}\n--- in the collection worker ---\n{traceback.format_exc()}"
 
 
 def _serve(conn: Connection, make_source: Callable) -> None:
@@ -45,11 +51,11 @@ def _serve(conn: Connection, make_source: Callable) -> None:
             try:
                 conn.send(("attempt", source(seed)))
             except Exception as err:  # noqa: BLE001 - sent to the parent, which raises it with the seed
-                conn.send(("error", f"{type(err).__name__}: {err}"))
+                conn.send(_failure(err))
     except (KeyboardInterrupt, EOFError, BrokenPipeError):  # interrupted with the parent, or the parent is gone
         pass
     except Exception as err:  # noqa: BLE001 - building the source failed
-        conn.send(("error", f"{type(err).__name__}: {err}"))
+        conn.send(_failure(err))
     finally:
         if source is not None:
             source.close()
