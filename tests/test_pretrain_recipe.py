@@ -50,9 +50,17 @@ def test_resume_continues_from_the_same_step_with_the_same_rng(toy_run, pick_dem
     resumed = tmp_path / "resumed"
     (resumed / "checkpoints").mkdir(parents=True)
     shutil.copytree(toy_run / "checkpoints" / "step_00000003", resumed / "checkpoints" / "step_00000003")
-    proc = run_recipe(f"run_dir={resumed}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6",
-                      "checkpoint.interval=3", "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1",
-                      "eval.episodes=0", f"tokenizers.dir={toy_run / 'tokenizers'}", "checkpoint.resume=true")
+    args = (f"run_dir={resumed}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=6",
+            "checkpoint.interval=3", "checkpoint.keep=5", "logger.log_interval=1", "num_threads=1",
+            "eval.episodes=0", f"tokenizers.dir={toy_run / 'tokenizers'}")
+    fresh = run_recipe(*args)  # without checkpoint.resume a run there would overwrite the checkpoints: refused
+    assert fresh.returncode != 0
+    assert (f"run_dir={resumed} already holds a run's checkpoints (newest: step_00000003)" in fresh.stderr
+            and "checkpoint.resume=true" in fresh.stderr)
+    # refused before training wrote anything (Hydra's own .hydra/ and log file aside)
+    assert not {"logs", "tokenizers", "history.json"} & {p.name for p in resumed.iterdir()}
+    assert [p.name for p in (resumed / "checkpoints").iterdir()] == ["step_00000003"]
+    proc = run_recipe(*args, "checkpoint.resume=true")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "resumed from" in proc.stdout and "at step 3" in proc.stdout
     history = json.loads((resumed / "history.json").read_text())

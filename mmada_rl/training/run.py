@@ -6,16 +6,30 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from mmada_rl.training.checkpoint import latest_checkpoint
+
 __all__ = ["require_cpu", "start_run"]
 
 
 def start_run(cfg: DictConfig) -> tuple[Path, dict]:
     """Set torch's threads (``cfg.num_threads``, 0: torch's default) and seed (``cfg.seed``), create
-    ``cfg.run_dir``; return it with the resolved config (what checkpoints store)."""
+    ``cfg.run_dir``; return it with the resolved config (what checkpoints store).
+
+    Raises:
+        FileExistsError: ``cfg.run_dir`` holds a run's checkpoints and ``checkpoint.resume`` is not set. A fresh
+            run there would overwrite them step by step and append its rows to the old run's logs.
+    """
+    run_dir = Path(cfg.run_dir)
+    if not cfg.get("checkpoint", {}).get("resume"):
+        newest = latest_checkpoint(run_dir)
+        if newest is not None:
+            raise FileExistsError(
+                f"run_dir={run_dir} already holds a run's checkpoints (newest: {newest.name}); a fresh run there "
+                "would overwrite them and append to its logs. Continue that run with checkpoint.resume=true, "
+                "or give another run_dir (or remove this one).")
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     torch.manual_seed(int(cfg.seed))
-    run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     return run_dir, OmegaConf.to_container(cfg, resolve=True)
 
