@@ -5,6 +5,7 @@ import json
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -71,6 +72,22 @@ def test_resume_continues_from_the_same_step_with_the_same_rng(toy_run, pick_dem
     w_resumed, w_original = weights(resumed / "checkpoints" / "step_00000006"), weights(toy_run / "checkpoints" / "step_00000006")
     for key in w_original:
         torch.testing.assert_close(w_resumed[key], w_original[key], rtol=1e-5, atol=1e-6)
+
+
+def test_a_fresh_run_warns_of_an_earlier_runs_logs_in_its_run_dir(tmp_path):
+    from omegaconf import OmegaConf
+
+    from mmada_rl.training import start_run
+
+    cfg = OmegaConf.create({"run_dir": str(tmp_path / "run"), "seed": 0, "num_threads": 0,
+                            "checkpoint": {"resume": None}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an empty or new run_dir: no warning
+        assert start_run(cfg)[0] == tmp_path / "run"
+    (tmp_path / "run" / "logs" / "scalars").mkdir(parents=True)
+    (tmp_path / "run" / "logs" / "scalars" / "loss.csv").write_text("1,0.5\n")  # a run stopped before a checkpoint
+    with pytest.warns(UserWarning, match="holds the logs of an earlier run that saved no checkpoint"):
+        start_run(cfg)
 
 
 def test_a_fork_continues_the_checkpoint_with_its_own_draws_and_forks_average_into_one_policy(toy_run, pick_demos,

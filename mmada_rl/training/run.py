@@ -1,6 +1,7 @@
 """The common start of every training recipe."""
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import torch
@@ -18,6 +19,9 @@ def start_run(cfg: DictConfig) -> tuple[Path, dict]:
     Raises:
         FileExistsError: ``cfg.run_dir`` holds a run's checkpoints and ``checkpoint.resume`` is not set. A fresh
             run there would overwrite them step by step and append its rows to the old run's logs.
+
+    A fresh run in a ``run_dir`` whose ``logs/`` an earlier run wrote (one stopped before its first checkpoint)
+    goes on with a warning: its rows are appended to those logs.
     """
     run_dir = Path(cfg.run_dir)
     if not cfg.get("checkpoint", {}).get("resume"):
@@ -27,6 +31,10 @@ def start_run(cfg: DictConfig) -> tuple[Path, dict]:
                 f"run_dir={run_dir} already holds a run's checkpoints (newest: {newest.name}); a fresh run there "
                 "would overwrite them and append to its logs. Continue that run with checkpoint.resume=true, "
                 "or give another run_dir (or remove this one).")
+        logs = run_dir / "logs"
+        if logs.is_dir() and any(p.is_file() for p in logs.rglob("*")):
+            warnings.warn(f"{logs} holds the logs of an earlier run that saved no checkpoint; this run appends its "
+                          "rows to them. Remove that folder or give another run_dir for separate logs.", stacklevel=2)
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     torch.manual_seed(int(cfg.seed))
