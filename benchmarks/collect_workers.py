@@ -77,9 +77,9 @@ def main(argv: list[str] | None = None) -> int:
                 steps[w] = len(res.buffer)
                 print(f"round {r}: {w} worker(s) {res.new_episodes} episodes from {res.attempts} attempts, "
                       f"{len(res.buffer)} steps in {seconds[w][-1]:.1f} s", flush=True)
-        reference = episodes_of(tmp / f"w{args.workers[0]}_r0")
-        same = {w: compare(reference, episodes_of(tmp / f"w{w}_r0")) for w in args.workers}
-        repeat = {w: compare(episodes_of(tmp / f"w{w}_r0"), episodes_of(tmp / f"w{w}_r{args.rounds - 1}"))
+        first = {w: episodes_of(tmp / f"w{w}_r0") for w in args.workers}  # each buffer read once
+        same = {w: compare(first[args.workers[0]], first[w]) for w in args.workers}
+        repeat = {w: compare(first[w], episodes_of(tmp / f"w{w}_r{args.rounds - 1}"))
                   for w in args.workers} if args.rounds > 1 else {}
     finally:
         shutil.rmtree(tmp)
