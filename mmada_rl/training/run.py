@@ -5,11 +5,40 @@ import warnings
 from pathlib import Path
 
 import torch
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from mmada_rl.training.checkpoint import latest_checkpoint
 
-__all__ = ["require_cpu", "start_run"]
+__all__ = ["RunDirGuard", "refuse_occupied_run_dir", "require_cpu", "start_run"]
+
+
+def refuse_occupied_run_dir(cfg: DictConfig) -> None:
+    """Raise ``FileExistsError`` when ``cfg.run_dir`` holds a run's checkpoints and ``checkpoint.resume`` is not
+    set: a fresh run there would overwrite them step by step and append its rows to the old run's logs."""
+    if cfg.get("checkpoint", {}).get("resume"):
+        return
+    run_dir = Path(cfg.run_dir)
+    newest = latest_checkpoint(run_dir)
+    if newest is not None:
+        raise FileExistsError(
+            f"run_dir={run_dir} already holds a run's checkpoints (newest: {newest.name}); a fresh run there "
+            "would overwrite them and append to its logs. Continue that run with checkpoint.resume=true, "
+            "or give another run_dir (or remove this one).")
+
+
+class RunDirGuard(Callback):
+    """Hydra callback (``hydra.callbacks`` in each recipe's toy config): refuses an occupied ``run_dir``
+    (:func:`refuse_occupied_run_dir`) before Hydra writes its ``.hydra/`` record and log file there, so a
+    refused command leaves the earlier run's record of its config as it was."""
+
+    def on_run_start(self, config: DictConfig, **kwargs) -> None:
+        try:
+            refuse_occupied_run_dir(config)
+        except FileExistsError as e:
+            # Hydra turns a callback's Exception into a warning and goes on; SystemExit stops the command
+            # with the message on stderr and exit status 1
+            raise SystemExit(f"FileExistsError: {e}") from None
 
 
 def start_run(cfg: DictConfig) -> tuple[Path, dict]:
@@ -17,24 +46,19 @@ def start_run(cfg: DictConfig) -> tuple[Path, dict]:
     ``cfg.run_dir``; return it with the resolved config (what checkpoints store).
 
     Raises:
-        FileExistsError: ``cfg.run_dir`` holds a run's checkpoints and ``checkpoint.resume`` is not set. A fresh
-            run there would overwrite them step by step and append its rows to the old run's logs.
+        FileExistsError: ``cfg.run_dir`` holds a run's checkpoints and ``checkpoint.resume`` is not set
+            (:func:`refuse_occupied_run_dir`; a recipe run from the command line is refused earlier, by
+            :class:`RunDirGuard`).
 
     A fresh run in a ``run_dir`` whose ``logs/`` an earlier run wrote (one stopped before its first checkpoint)
     goes on with a warning: its rows are appended to those logs.
     """
     run_dir = Path(cfg.run_dir)
-    if not cfg.get("checkpoint", {}).get("resume"):
-        newest = latest_checkpoint(run_dir)
-        if newest is not None:
-            raise FileExistsError(
-                f"run_dir={run_dir} already holds a run's checkpoints (newest: {newest.name}); a fresh run there "
-                "would overwrite them and append to its logs. Continue that run with checkpoint.resume=true, "
-                "or give another run_dir (or remove this one).")
-        logs = run_dir / "logs"
-        if logs.is_dir() and any(p.is_file() for p in logs.rglob("*")):
-            warnings.warn(f"{logs} holds the logs of an earlier run that saved no checkpoint; this run appends its "
-                          "rows to them. Remove that folder or give another run_dir for separate logs.", stacklevel=2)
+    refuse_occupied_run_dir(cfg)
+    logs = run_dir / "logs"
+    if not cfg.get("checkpoint", {}).get("resume") and logs.is_dir() and any(p.is_file() for p in logs.rglob("*")):
+        warnings.warn(f"{logs} holds the logs of an earlier run that saved no checkpoint; this run appends its "
+                      "rows to them. Remove that folder or give another run_dir for separate logs.", stacklevel=2)
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     torch.manual_seed(int(cfg.seed))
