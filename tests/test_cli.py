@@ -80,7 +80,7 @@ def test_quickstart_runs_each_tasks_config_shortened_unless_full():
     for config in CONFIGS.values():
         assert (recipes / "pretrain" / "config" / f"{config}.yaml").exists()
         assert (recipes / "finetune" / "config" / f"{config}.yaml").exists()
-    assert set(FINETUNE_RESULTS) == set(CONFIGS)
+    assert set(FINETUNE_RESULTS) == {(task, full) for task in CONFIGS for full in (False, True)}
 
     def overrides(*argv):
         args = build_parser().parse_args(["quickstart", *argv])
@@ -97,3 +97,24 @@ def test_quickstart_runs_each_tasks_config_shortened_unless_full():
     with pytest.raises(SystemExit) as exit_:
         build_parser().parse_args(["quickstart", "--task", "StackCube-v1"])
     assert exit_.value.code == 2
+
+
+def test_quickstart_report_names_the_next_fine_tuning_and_what_it_measured(toy_pretrain_run, pick_demos, tmp_path):
+    """The report the quickstart ends with, from a real (toy) pretraining run and a real one-episode evaluation:
+    its evaluation table, the fine-tuning command that continues this run, and what that command measured from
+    the quickstart's own policy of the same kind (default or ``--full``)."""
+    from mmada_rl.evaluation import evaluate
+    from mmada_rl.quickstart import FINETUNE_RESULTS, _report
+
+    result = evaluate(toy_pretrain_run, "PickCube-v1", episodes=1, max_episode_steps=4, progress=False)
+    for argv, measured in (([], "0.16 -> 0.47"), (["--full"], "0.79 -> 0.75")):
+        args = build_parser().parse_args(["quickstart", *argv])
+        out = tmp_path / ("full" if args.full else "default")
+        out.mkdir()  # the quickstart's output folder, made before its pretraining
+        text = _report(out, toy_pretrain_run, pick_demos, result, 60.0, args).read_text()
+        assert text.startswith("# mmada_rl quickstart: PickCube-v1")
+        assert f"2 motion-planner episodes in {pick_demos}" in text and "| episodes | 1 |" in text
+        assert (f"`python recipes/finetune/finetune.py --config-name pickcube_cpu pretrained={toy_pretrain_run} "
+                f"demos.dir={pick_demos} run_dir={out / 'finetune'}`") in text
+        assert FINETUNE_RESULTS["PickCube-v1", args.full] in text and measured in text
+        assert (out / "learning_curve.png").stat().st_size > 0
