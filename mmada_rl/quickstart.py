@@ -32,8 +32,8 @@ FINETUNE_RESULTS = {
                             "from d_model = 128 policies pretrained 5000 steps 0.54 -> 0.74 over three seeds",
     ("PickCube-v1", True): "measured from the quickstart's --full run (one seed): 0.79 -> 0.75 over 150 evaluation episodes, no lift, "
                            "and 0.75 without RL (demos.ratio=1.0) too; from three d_model = 256 seeds 0.70 -> 0.78",
-    ("PushCube-v1", False): "0.93 -> 0.90 from the full config's policies: it holds their level, lifting nothing",
-    ("PushCube-v1", True): "0.93 -> 0.90 from the full config's policies: it holds their level, lifting nothing",
+    **{("PushCube-v1", full): "0.93 -> 0.90 from the full config's policies: it holds their level, lifting nothing"
+       for full in (False, True)},  # measured from the full config's policies only: one line for both runs
 }
 SHORT_STEPS = 3000  # pretraining steps of the default (not --full) run
 #: the default run's changes to each config: PickCube-v1 at d_model = 128, a training step 0.37x the time of d = 256's
