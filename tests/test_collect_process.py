@@ -126,8 +126,11 @@ def test_a_collection_error_is_raised_by_take_with_its_message_and_the_process_s
     assert ahead.take()[0]["weight"] is not None
     ahead.start()
     ahead.wait()  # finished (with an error) but not raised here
-    with pytest.raises(CollectorProcessError, match="RuntimeError: the simulator died"):
+    with pytest.raises(CollectorProcessError, match="RuntimeError: the simulator died") as failure:
         ahead.take()
+    # the process's own traceback comes with the message: where in the collector it was raised
+    assert "--- in the collector process ---" in str(failure.value) and "the simulator died" in str(failure.value)
+    assert 'raise RuntimeError("the simulator died")' in str(failure.value)
     pid = ahead.pid
     ahead.close()
     assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text()

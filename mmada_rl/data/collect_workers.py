@@ -31,9 +31,10 @@ class CollectionWorkerError(RuntimeError):
     """A collection worker failed (its message) or ended without answering."""
 
 
-def _failure(err: Exception) -> tuple[str, str]:
-    """The message a worker sends for ``err``: its type, text and the worker's traceback (lost in the parent)."""
-    return "error", f"{type(err).__name__}: {err}\n--- in the collection worker ---\n{traceback.format_exc()}"
+def error_reply(err: BaseException, where: str) -> tuple[str, str]:
+    """The ``("error", message)`` a spawned process sends its parent for ``err``: its type, its text and the
+    process's traceback (lost in the parent), headed by ``where`` it was raised. Called in the ``except`` block."""
+    return "error", f"{type(err).__name__}: {err}\n--- in the {where} ---\n{traceback.format_exc()}"
 
 
 def _serve(conn: Connection, make_source: Callable) -> None:
@@ -51,11 +52,11 @@ def _serve(conn: Connection, make_source: Callable) -> None:
             try:
                 conn.send(("attempt", source(seed)))
             except Exception as err:  # noqa: BLE001 - sent to the parent, which raises it with the seed
-                conn.send(_failure(err))
+                conn.send(error_reply(err, "collection worker"))
     except (KeyboardInterrupt, EOFError, BrokenPipeError):  # interrupted with the parent, or the parent is gone
         pass
     except Exception as err:  # noqa: BLE001 - building the source failed
-        conn.send(_failure(err))
+        conn.send(error_reply(err, "collection worker"))
     finally:
         if source is not None:
             source.close()

@@ -41,12 +41,13 @@ from __future__ import annotations
 import multiprocessing as mp
 import pickle
 import time
-import traceback
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+
+from mmada_rl.data.collect_workers import error_reply
 
 __all__ = ["CollectAheadProcess", "CollectorParts", "CollectorProcessError"]
 
@@ -78,10 +79,6 @@ def _send(conn, message: Any) -> None:
     conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
 
 
-def _error(err: BaseException) -> tuple[str, str]:
-    return "error", f"{type(err).__name__}: {err}\n--- in the collector process ---\n{traceback.format_exc()}"
-
-
 def _set_states(generators: dict[str, torch.Generator], states: dict[str, torch.Tensor]) -> None:
     """Set each of ``generators`` that ``states`` names to its state (the other side's generators of the same names)."""
     for name, state in states.items():
@@ -95,7 +92,7 @@ def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> Non
     try:
         parts = factory()
     except Exception as err:
-        _send(conn, _error(err))
+        _send(conn, error_reply(err, "collector process"))
         return
     _send(conn, ("ready", None))
     try:
@@ -116,7 +113,7 @@ def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> Non
                 states = {name: g.get_state() for name, g in parts.generators.items()}
                 _send(conn, ("batch", (batch, seconds, states)))
             except Exception as err:
-                _send(conn, _error(err))
+                _send(conn, error_reply(err, "collector process"))
     finally:
         if parts.close is not None:
             parts.close()
