@@ -6,7 +6,7 @@ The pretraining recipes draw each batch of chunk windows from the demonstration
 buffer on the CPU (``make_window_buffer``) and shift its observation and goal
 images together (``RandomShift``, 4 pixels) before ``loss_inputs`` tokenizes
 them. With the model on a GPU that is most of a step: nine pretraining runs
-side by side on an H200 were each bound by it (README, "On a GPU"). This times,
+side by side on an H200 were each bound by it (docs/results/measured.md, "On a GPU"). This times,
 on real windows of ``--demos``, one ``sample()`` of the recipe's pipeline with
 the shift as :func:`mmada_rl.data.random_shift` crops it (a slice copy per
 image) and the instruction text as :class:`~mmada_rl.data.buffer.InstructionLookup`

@@ -68,7 +68,7 @@ def start_run(cfg: DictConfig) -> tuple[Path, dict]:
 
 def require_cpu(cfg: DictConfig, recipe: str) -> None:
     """Raise unless ``cfg.device`` is the CPU: the online recipes collect in CPU simulators and have not
-    been run on an accelerator (the pretraining and imitation recipes have; README, "On a GPU")."""
+    been run on an accelerator (the pretraining and imitation recipes have; docs/results/measured.md, "On a GPU")."""
     device = torch.device(str(cfg.get("device", "cpu")))
     if device.type != "cpu":
         raise ValueError(f"device={cfg.device}: the {recipe} recipe runs on the CPU only (its collection and "
