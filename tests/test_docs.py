@@ -2,6 +2,7 @@
 every such link must reach an existing file and, where it names one, an existing heading."""
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 
@@ -12,6 +13,7 @@ DOCS = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 
 
+@functools.cache
 def _anchors(path: Path) -> set[str]:
     """GitHub's anchors for the headings of a Markdown file (outside code fences)."""
     anchors, fenced = set(), False
@@ -35,8 +37,8 @@ def test_the_docs_are_found():
             "docs/results/finetuning.md", "docs/results/shortfalls.md"} <= names
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.relative_to(REPO).as_posix())
-def test_every_relative_link_reaches_a_file_and_its_heading(doc):
+def _broken(doc: Path) -> list[str]:
+    """``doc``'s relative links that reach no file, or no heading of the Markdown file they name."""
     broken = []
     for target in _links(doc):
         path, _, anchor = target.partition("#")
@@ -44,7 +46,13 @@ def test_every_relative_link_reaches_a_file_and_its_heading(doc):
         if not dest.exists():
             broken.append(f"{target}: no such file")
         elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
-            broken.append(f"{target}: no such heading in {dest.relative_to(REPO)}")
+            broken.append(f"{target}: no such heading in {dest.name}")
+    return broken
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.relative_to(REPO).as_posix())
+def test_every_relative_link_reaches_a_file_and_its_heading(doc):
+    broken = _broken(doc)
     assert not broken, f"{doc.relative_to(REPO)}: " + "; ".join(broken)
 
 
@@ -53,3 +61,4 @@ def test_a_broken_link_and_a_missing_heading_are_caught(tmp_path):
     doc.write_text("# Title\n\n[ok](#title) [gone](b.md) [bad](#nowhere)\n\n```\n[in code](c.md)\n```\n")
     assert _links(doc) == ["#title", "b.md", "#nowhere"]
     assert _anchors(doc) == {"title"}
+    assert _broken(doc) == ["b.md: no such file", "#nowhere: no such heading in a.md"]
