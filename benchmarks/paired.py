@@ -12,7 +12,8 @@ are not independent, though: the same initial states, and for one training seed 
 before and after a change. Pairing them episode by episode asks more of the data:
 
 * an **arm** is a label and one source per training seed: an ``eval.json`` of ``mmada-rl eval``
-  (its ``per_episode`` records), or a fine-tuning or online RL baseline run directory (``recipes/finetune``,
+  (its ``per_episode`` records; a pretraining or imitation run writes its evaluation at the end as
+  ``RUN/final_eval/eval.json``), or a fine-tuning or online RL baseline run directory (``recipes/finetune``,
   ``recipes/baselines/online.py``, e.g. one of ``benchmarks/compare``'s) for the last evaluation its
   ``eval_history.json`` recorded, ``RUN@S`` for the one at ``S`` online env steps (each record
   keeps its episodes); every arm names the same
@@ -74,9 +75,11 @@ def read_run_episodes(source: Path, run: Path, at_step: int | None) -> dict:
     """The episodes of a fine-tuning (or online RL baseline) run's evaluation at ``at_step`` online env steps (its
     last when ``None``)."""
     if not (run / "eval_history.json").is_file():
-        raise ValueError(f"{source}: only the evaluations of fine-tuning and online RL baseline runs "
-                         f"(eval_history.json) keep their episodes; "
-                         f"evaluate this run with `mmada-rl eval --out DIR` and pair DIR/eval.json.")
+        final = run / "final_eval" / "eval.json"
+        hint = (f"pair {final}, its evaluation at the end" if final.is_file() and at_step is None else
+                "evaluate one of its checkpoints with `mmada-rl eval --out DIR` and pair DIR/eval.json")
+        raise ValueError(f"{source}: a pretraining or imitation run keeps the episodes of its evaluation at the end "
+                         f"only, in final_eval/eval.json; {hint}.")
     chosen = run_evaluation(run, at_step)
     episodes = chosen.get("per_episode")
     if not episodes:

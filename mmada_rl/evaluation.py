@@ -218,6 +218,20 @@ class EvalResult:
                 "episodes": self.episodes,
                 "per_episode": [{"seed": int(r.seed), "success_once": bool(r.success_once)} for r in self.per_episode]}
 
+    def save(self, out_dir: str | Path) -> list[Path]:
+        """Write ``eval.json`` (the metrics of :meth:`to_dict`, the provenance and each episode's record, what
+        ``benchmarks/seeds.py`` and ``benchmarks/paired.py`` read) and ``eval.md`` (:meth:`table`) into ``out_dir``."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        payload = {**self.to_dict(), "task": self.task, "checkpoint": self.checkpoint,
+                   "action_readout": self.action_readout, "demo_seeds": self.demo_seeds,
+                   "own_weights": self.own_weights, "seeds": self.seeds,
+                   "per_episode": [r._asdict() for r in self.per_episode]}
+        files = [out / "eval.json", out / "eval.md"]
+        files[0].write_text(json.dumps(payload, indent=2))
+        files[1].write_text(self.table() + "\n")
+        return files
+
     def table(self) -> str:
         """A small Markdown table of the headline numbers."""
         rows = [
@@ -530,14 +544,7 @@ def _checkpoint_label(model) -> str | None:
 
 # -- outputs ----------------------------------------------------------------------
 def _write_outputs(out: Path, metrics: EvalResult, videos, goal) -> list[str]:
-    out.mkdir(parents=True, exist_ok=True)
-    payload = {**metrics.to_dict(), "task": metrics.task, "checkpoint": metrics.checkpoint,
-               "action_readout": metrics.action_readout, "demo_seeds": metrics.demo_seeds,
-               "own_weights": metrics.own_weights, "seeds": metrics.seeds,
-               "per_episode": [r._asdict() for r in metrics.per_episode]}
-    files = [out / "eval.json", out / "eval.md"]
-    files[0].write_text(json.dumps(payload, indent=2))
-    files[1].write_text(metrics.table() + "\n")
+    files = metrics.save(out)
     if videos is not None:
         files += [_write_video(f, out / "videos" / f"episode{i:03d}_seed{s}") for i, (f, s) in enumerate(zip(videos, metrics.seeds))]
     if goal is not None:

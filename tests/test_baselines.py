@@ -373,6 +373,9 @@ def test_recipe_trains_logs_checkpoints_and_evaluates(toy_runs, algo):
     final = json.loads((run_dir / "final.json").read_text())
     assert final["step"] == 4 and final["eval/episodes"] == 1 and 0.0 <= final["eval/success_once"] <= 1.0
     assert final["eval/num_denoise_steps"] == (10 if algo == "diffusion_policy" else 1)
+    recorded = json.loads((run_dir / "final_eval" / "eval.json").read_text())  # the same, episode by episode
+    assert recorded["eval/success_once"] == final["eval/success_once"] and len(recorded["per_episode"]) == 1
+    assert recorded["checkpoint"] == str(ckpt)
     assert (run_dir / "logs" / "scalars" / "train" / f"{key.split('/')[1]}.csv").exists()  # TorchRL CSV logger
     # Diffusion Policy evaluates and saves the moving average of its weights; the optimizer's own are kept to resume
     extra = torch.load(ckpt / "trainer.pt", weights_only=False)["extra"]

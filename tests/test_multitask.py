@@ -137,6 +137,10 @@ def test_multitask_recipe_trains_and_evaluates_each_task(multitask_run):
         assert final[f"eval/{task}/episodes"] == 1 and final[f"eval/{task}/episode_length"] == 5
     mean = (final["eval/PickCube-v1/success_once"] + final["eval/PushCube-v1/success_once"]) / 2
     assert final["eval/success_once"] == pytest.approx(mean)
+    for task in ("PickCube-v1", "PushCube-v1"):  # each task's evaluation at the end, episode by episode
+        recorded = json.loads((run_dir / "final_eval" / task / "eval.json").read_text())
+        assert recorded["task"] == task and len(recorded["per_episode"]) == 1
+        assert recorded["eval/success_once"] == final[f"eval/{task}/success_once"]
     config = json.loads((run_dir / "checkpoints" / "step_00000003" / "config.json").read_text())
     assert config["tasks"] == ["PickCube-v1", "PushCube-v1"]
     model = json.loads((run_dir / "checkpoints" / "step_00000003" / "model" / "model.json").read_text())

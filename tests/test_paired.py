@@ -87,5 +87,5 @@ def test_a_fine_tuning_run_is_a_source_where_its_evaluations_kept_their_episodes
     assert paired.main(["--arm", "a", a, "--arm", "run", f"{run}@4135", "--name", "p", "--out", str(out)]) == 0
     with pytest.raises(ValueError, match="evaluation at env step 0 keeps no episodes"):
         paired.main(["--arm", "a", a, "--arm", "run", f"{run}@0", "--out", str(out)])
-    with pytest.raises(ValueError, match="only the evaluations of fine-tuning and online RL baseline runs"):
+    with pytest.raises(ValueError, match="evaluation at the end only, in final_eval/eval.json; evaluate one of its"):
         paired.main(["--arm", "a", a, "--arm", "dir", str(tmp_path / "a"), "--out", str(out)])

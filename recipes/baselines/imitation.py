@@ -10,7 +10,8 @@ the ``action_is_pad`` mask) or ``diffusion_policy`` (DDPM over the flattened chu
 ``DiffusionBCLoss``). Both read the same chunk windows (64x64 RGB + proprio state
 at ``t``, actions ``t..t+K-1``) as the pretraining recipe, are evaluated by
 ``mmada_rl.evaluation.evaluate`` on the same fixed seeds every ``eval.interval``
-steps and at the end, and checkpoint atomically every ``checkpoint.interval`` steps.
+steps and at the end (that one also written episode by episode to ``run_dir/final_eval/eval.json``, in
+``mmada-rl eval``'s format), and checkpoint atomically every ``checkpoint.interval`` steps.
 Diffusion Policy keeps a moving average of its weights (``ema``, as Chi et al.):
 the average is what is evaluated and saved as the checkpoint's policy.
 """
@@ -23,7 +24,7 @@ import hydra
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
-from mmada_rl.training import ema_applied, optimizer_step, resume_own_weights, start_run
+from mmada_rl.training import ema_applied, latest_checkpoint, optimizer_step, resume_own_weights, start_run
 from utils import (PREFIX, evaluate, make_data, make_demo_buffer, make_ema, make_logger, make_loss, make_optim, make_policy,
                    resume, save)
 
@@ -74,7 +75,7 @@ def main(cfg: DictConfig) -> None:
     final = {"step": total}
     if total > start and int(cfg.eval.episodes) > 0:
         with ema_applied(ema):
-            final.update(evaluate(cfg, policy))
+            final.update(evaluate(cfg, policy, record=run_dir / "final_eval", checkpoint=latest_checkpoint(run_dir)))
         for key, value in final.items():
             if key.startswith("eval/"):
                 logger.log_scalar(key, value, step=total)

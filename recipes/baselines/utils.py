@@ -122,12 +122,17 @@ def save(cfg: DictConfig, run_dir: Path, step: int, *, policy: ChunkPolicy, ema:
                         generators=generators, extra={**extra, "history": history}, keep=int(cfg.checkpoint.keep))
 
 
-def evaluate(cfg: DictConfig, policy: ChunkPolicy) -> dict:
-    """``eval/...`` metrics of the policy on ``cfg.eval.episodes`` fixed evaluation seeds."""
+def evaluate(cfg: DictConfig, policy: ChunkPolicy, record: Path | None = None, checkpoint: Path | None = None) -> dict:
+    """``eval/...`` metrics of the policy on ``cfg.eval.episodes`` fixed evaluation seeds; with ``record``, the
+    evaluation is also written there (``eval.json`` with every episode, ``eval.md``), naming ``checkpoint`` as the
+    policy evaluated."""
     from mmada_rl.evaluation import evaluate as run_eval
 
     result = run_eval(policy, cfg.env.task, episodes=int(cfg.eval.episodes), image_size=policy.image_size,
                       control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
                       execute_steps=int(cfg.eval.execute_steps), num_denoise_steps=cfg.eval.num_denoise_steps,
                       progress=False)
+    if record is not None:
+        result.checkpoint = str(checkpoint) if checkpoint else None
+        result.save(record)
     return result.to_dict()

@@ -15,7 +15,10 @@ steps and at the end, scores held-out demonstrations (``validation.dir``) every
 ``validation.interval`` steps and at the end, and checkpoints atomically every ``checkpoint.interval`` steps.
 With ``ema.enabled=true`` a moving average of the denoiser's weights is what is
 evaluated and saved (``ema.evaluate_raw=true`` also evaluates the optimizer's own
-weights, as ``eval_raw/...``: the two compared within one run).
+weights, as ``eval_raw/...``: the two compared within one run). The evaluation at the end
+is also written episode by episode to ``run_dir/final_eval/eval.json`` (``final_eval_raw/`` for the own
+weights; a multi-task model's under ``final_eval/<task>/``), in ``mmada-rl eval``'s format: what
+``benchmarks/paired.py`` pairs on.
 """
 from __future__ import annotations
 
@@ -32,6 +35,7 @@ from mmada_rl.training import (
     autocast,
     ema_applied,
     ema_checkpointed,
+    latest_checkpoint,
     make_weight_ema,
     optimizer_step,
     resume_own_weights,
@@ -53,16 +57,23 @@ from utils import (
 )
 
 
-def evaluate(cfg: DictConfig, model, step: int) -> dict:
+def evaluate(cfg: DictConfig, model, record: Path | None = None, checkpoint: Path | None = None,
+             own_weights: bool = False) -> dict:
     """Success of ``model`` on each training task; a multi-task model also reports per-task metrics
-    (``eval/<task>/...``) and their mean under the plain ``eval/...`` names."""
+    (``eval/<task>/...``) and their mean under the plain ``eval/...`` names. With ``record``, each task's
+    evaluation is also written there (``eval.json`` with every episode, ``eval.md``; a multi-task model's under
+    ``record/<task>/``), naming ``checkpoint`` as the policy evaluated and ``own_weights`` as in ``mmada-rl eval``."""
     from mmada_rl.evaluation import evaluate as run_eval
 
+    tasks = task_list(cfg)
     per_task = {}
-    for task in task_list(cfg):
+    for task in tasks:
         result = run_eval(model, task, episodes=int(cfg.eval.episodes), image_size=int(cfg.env.image_size),
                           control_mode=cfg.env.control_mode, max_episode_steps=cfg.eval.max_episode_steps,
                           execute_steps=int(cfg.eval.execute_steps), progress=False)
+        if record is not None:
+            result.checkpoint, result.own_weights = str(checkpoint) if checkpoint else None, own_weights
+            result.save(record if len(tasks) == 1 else record / task)
         per_task[task] = result.to_dict()
     if len(per_task) == 1:
         return next(iter(per_task.values()))
@@ -72,13 +83,20 @@ def evaluate(cfg: DictConfig, model, step: int) -> dict:
     return out
 
 
-def evaluate_saved(cfg: DictConfig, model, ema, step: int) -> dict:
+def evaluate_saved(cfg: DictConfig, model, ema, run_dir: Path | None = None) -> dict:
     """``eval/...`` of the weights the run saves (the moving average with ``ema.enabled``), and with
-    ``ema.evaluate_raw`` ``eval_raw/...`` of the optimizer's own weights."""
+    ``ema.evaluate_raw`` ``eval_raw/...`` of the optimizer's own weights. With ``run_dir`` (the end of the run),
+    the evaluations are also written, episode by episode, to ``run_dir/final_eval/`` and ``run_dir/final_eval_raw/``
+    (:func:`evaluate`), as the run's newest checkpoint."""
+    def record(name: str) -> Path | None:
+        return None if run_dir is None else run_dir / name
+
+    checkpoint = None if run_dir is None else latest_checkpoint(run_dir)
     with ema_applied(ema):
-        out = evaluate(cfg, model, step)
+        out = evaluate(cfg, model, record("final_eval"), checkpoint)
     if ema is not None and cfg.ema.evaluate_raw:
-        out.update({f"eval_raw/{key[len('eval/'):]}": value for key, value in evaluate(cfg, model, step).items()})
+        raw = evaluate(cfg, model, record("final_eval_raw"), checkpoint, own_weights=True)
+        out.update({f"eval_raw/{key[len('eval/'):]}": value for key, value in raw.items()})
     return out
 
 
@@ -139,7 +157,7 @@ def main(cfg: DictConfig) -> None:
         if held_out and cfg.validation.interval and done % int(cfg.validation.interval) == 0 and done < total:
             metrics.update(validate(model, ema, held_out))
         if cfg.eval.interval and int(cfg.eval.episodes) > 0 and done % int(cfg.eval.interval) == 0 and done < total:
-            metrics.update(evaluate_saved(cfg, model, ema, done))
+            metrics.update(evaluate_saved(cfg, model, ema))
             model.train()
         reported = any(key.startswith(("eval/", "val/")) for key in metrics)
         if done % int(cfg.logger.log_interval) == 0 or done == total or reported:
@@ -158,7 +176,7 @@ def main(cfg: DictConfig) -> None:
     if total > start and held_out:
         final.update(validate(model, ema, held_out))
     if total > start and int(cfg.eval.episodes) > 0:
-        final.update(evaluate_saved(cfg, model, ema, total))
+        final.update(evaluate_saved(cfg, model, ema, run_dir))
     for key, value in final.items():
         if key.startswith(("eval/", "eval_raw/", "val/")):
             logger.log_scalar(key, value, step=total)
