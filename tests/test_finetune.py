@@ -30,6 +30,7 @@ from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAM
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from mmada_rl.training.checkpoint import TRAINER_FILE, latest_checkpoint, load_checkpoint
 from checkpoint_checks import check_average_beside_own_weights, weights
+from recipe_errors import recipe_errors
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -1276,7 +1277,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     assert len(buffer) > 0 and SEQUENCE_KEY in buffer[:1].keys(True, True)
 
 
-@pytest.mark.parametrize("overrides, message", [
+BAD_CONFIGS = [
     (["algo=sac"], "algo='sac' is not a fine-tuning algorithm"),
     (["pretrained=null"], "pretrained=null"),
     (["demos.ratio=1.5"], "demos.ratio must lie in [0, 1]"),
@@ -1305,8 +1306,26 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     (["algo=ppo", "collector.overlap=true"], "so PPO's ratios would not start at 1 on the fresh batch"),
     (["algo=ppo", "collector.overlap=process"], "collector.overlap=process collects each batch by the weights of one"),
     (["collector.overlap=sideways"], "collector.overlap='sideways'; use false, thread (or true) or process."),
-])
-def test_bad_configs_fail_with_one_clear_error(toy_pretrain_run, pick_demos, tmp_path, overrides, message):
+]
+
+
+@pytest.fixture(scope="module")
+def bad_config_errors(toy_pretrain_run, pick_demos, tmp_path_factory) -> dict[str, str | None]:
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    root = tmp_path_factory.mktemp("bad_configs")
+    cases = [[f"pretrained={toy_pretrain_run}", f"run_dir={root / str(i)}", f"demos.dir={pick_demos}", *overrides]
+             for i, (overrides, _) in enumerate(BAD_CONFIGS)]
+    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases))}
+
+
+@pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
+def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, message):
+    error = bad_config_errors[" ".join(overrides)]
+    assert error is not None and message in error, error
+
+
+def test_a_bad_config_on_the_command_line_exits_with_its_message(toy_pretrain_run, pick_demos, tmp_path):
+    overrides, message = BAD_CONFIGS[0]
     proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
     assert proc.returncode != 0 and message in proc.stderr
 

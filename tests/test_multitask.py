@@ -13,6 +13,7 @@ from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, pad_state
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY, STATE_KEY, TASK_INDEX_KEY
 from mmada_rl.policy.model import instructions_of
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
+from recipe_errors import recipe_errors
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,19 +161,40 @@ def test_multitask_model_keeps_each_tasks_camera(multitask_run):
         eval_env_config(actor, "StackCube-v1")
 
 
-@pytest.mark.parametrize("overrides, message", [
+BAD_CONFIGS = [
     (["data.dir={demos}"], "put {task} in data.dir"),
     (["data.dir={{PickCube-v1: '{demos}'}}"], "data.dir gives the buffers of ['PickCube-v1'] but not of 'PushCube-v1'"),
     (["data.dir='{parent}/{{task}}'", "env.camera_fov={{PickCube-v1: null}}"],
      "camera_fov gives the cameras of ['PickCube-v1'] but not of 'PushCube-v1'"),
-])
-def test_multitask_bad_buffers_or_cameras_are_one_clear_error(pick_demos, push_demos, tmp_path, overrides, message):
+]
+
+
+def bad_config_run(pick_demos: Path, run_dir: Path, overrides: list[str]) -> list[str]:
+    """Two tasks, ``overrides`` (``{demos}``: ``pick_demos``, ``{parent}``: its folder) naming their buffers and
+    cameras, one step, no evaluation."""
     overrides = [o.format(demos=pick_demos, parent=pick_demos.parent) for o in overrides]
-    proc = subprocess.run(
-        [sys.executable, str(RECIPE), f"run_dir={tmp_path / 'bad'}", "tasks=[PickCube-v1,PushCube-v1]", *overrides,
-         "data.collect_episodes=0", "optim.total_steps=1", "eval.episodes=0"],
-        cwd=REPO, capture_output=True, text=True, timeout=300,
-    )
+    return [f"run_dir={run_dir}", "tasks=[PickCube-v1,PushCube-v1]", *overrides, "data.collect_episodes=0",
+            "optim.total_steps=1", "eval.episodes=0"]
+
+
+@pytest.fixture(scope="module")
+def bad_config_errors(pick_demos, push_demos, tmp_path_factory) -> dict[str, str | None]:
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    root = tmp_path_factory.mktemp("bad_configs")
+    cases = [bad_config_run(pick_demos, root / str(i), overrides) for i, (overrides, _) in enumerate(BAD_CONFIGS)]
+    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases))}
+
+
+@pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
+def test_multitask_bad_buffers_or_cameras_are_one_clear_error(bad_config_errors, overrides, message):
+    error = bad_config_errors[" ".join(overrides)]
+    assert error is not None and message in error, error
+
+
+def test_a_bad_multitask_config_on_the_command_line_exits_with_its_message(pick_demos, push_demos, tmp_path):
+    overrides, message = BAD_CONFIGS[0]
+    proc = subprocess.run([sys.executable, str(RECIPE), *bad_config_run(pick_demos, tmp_path / "bad", overrides)],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
 
 

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from checkpoint_checks import check_average_beside_own_weights, weights
+from recipe_errors import recipe_errors
 from script_loader import load_script
 from mmada_rl.cli import main as cli_main
 from mmada_rl.evaluation import load_actor
@@ -225,35 +226,53 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
         torch.testing.assert_close(own_again["train_weights"][key], own["train_weights"][key], rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize(
-    "overrides, message",
-    [
-        (["model.chunk_size=500"], "chunk_size=500 is longer than every episode"),
-        (["env.image_size=32"], "image_size=64 but 32 was asked for"),
-        (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
-        (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
-        (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
-        (["loss.action_mean_weight=1"], "loss.action_mean_weight=1.0 scores the expected bin of each action token, "
-                                        "so it needs ordered bin tokens"),
-        (["data.skip_grasp_hold=0.05", "data.grasp_hold_gripper_only=true"],
-         "data.grasp_hold_gripper_only scores the gripper's token of each action, so it needs ordered bin tokens"),
-        (["loss.full_mask_prob=1.5"], "loss.full_mask_prob must lie in [0, 1], got 1.5"),
-        (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
-        (["model.action_readout=mean"], "action_readout='mean' reads each action token's expected bin, so it needs ordered "
-                                          "bin tokens (tokenizers.action_type=bins), not a VQActionTokenizer"),
-        (["model.state_differences=[[26,19]]"], "covers 29 dimensions, not the demonstrations' 29 plus the 1 of "
-                                                "model.state_differences=[[26, 19]]"),
-        (["model.visual_encoder_freeze=true"], "model.visual_encoder_freeze=true fixes a CNN copied from "
-                                               "model.visual_encoder_init"),
-        (["model.visual_encoder_init=runs/bc"], "copies a CNN into the denoiser's own, which it does not have"),
-        (["optim.precision=fp16"], "precision must be one of fp32, bf16, got 'fp16'"),
-    ],
-)
-def test_bad_configs_fail_with_one_clear_error(pick_demos, tmp_path, toy_run, overrides, message):
-    proc = run_recipe(f"run_dir={tmp_path / 'bad'}", f"data.dir={pick_demos}", "data.collect_episodes=0",
-                      f"tokenizers.dir={toy_run / 'tokenizers'}", "optim.total_steps=1", "eval.episodes=0", *overrides)
-    assert proc.returncode != 0
-    assert message in proc.stderr
+BAD_CONFIGS = [
+    (["model.chunk_size=500"], "chunk_size=500 is longer than every episode"),
+    (["env.image_size=32"], "image_size=64 but 32 was asked for"),
+    (["env.task=PickBanana-v9"], "Unknown task 'PickBanana-v9'"),
+    (["loss.corruptions_per_sample=0"], "corruptions_per_sample must be a positive integer, got 0"),
+    (["loss.action_label_sigma=0.75"], "needs ordered bin tokens (tokenizers.action_type=bins)"),
+    (["loss.action_mean_weight=1"], "loss.action_mean_weight=1.0 scores the expected bin of each action token, "
+                                    "so it needs ordered bin tokens"),
+    (["data.skip_grasp_hold=0.05", "data.grasp_hold_gripper_only=true"],
+     "data.grasp_hold_gripper_only scores the gripper's token of each action, so it needs ordered bin tokens"),
+    (["loss.full_mask_prob=1.5"], "loss.full_mask_prob must lie in [0, 1], got 1.5"),
+    (["replay_buffer.random_shift=-2"], "replay_buffer.random_shift=-2 must be a whole number of pixels"),
+    (["model.action_readout=mean"], "action_readout='mean' reads each action token's expected bin, so it needs ordered "
+                                      "bin tokens (tokenizers.action_type=bins), not a VQActionTokenizer"),
+    (["model.state_differences=[[26,19]]"], "covers 29 dimensions, not the demonstrations' 29 plus the 1 of "
+                                            "model.state_differences=[[26, 19]]"),
+    (["model.visual_encoder_freeze=true"], "model.visual_encoder_freeze=true fixes a CNN copied from "
+                                           "model.visual_encoder_init"),
+    (["model.visual_encoder_init=runs/bc"], "copies a CNN into the denoiser's own, which it does not have"),
+    (["optim.precision=fp16"], "precision must be one of fp32, bf16, got 'fp16'"),
+]
+
+
+def bad_config_run(pick_demos: Path, toy_run: Path, run_dir: Path, overrides: list[str]) -> list[str]:
+    """The toy recipe on ``pick_demos`` with ``toy_run``'s tokenizers, one step, no evaluation, and ``overrides``."""
+    return [f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0",
+            f"tokenizers.dir={toy_run / 'tokenizers'}", "optim.total_steps=1", "eval.episodes=0", *overrides]
+
+
+@pytest.fixture(scope="module")
+def bad_config_errors(pick_demos, toy_run, tmp_path_factory) -> dict[str, str | None]:
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    root = tmp_path_factory.mktemp("bad_configs")
+    cases = [bad_config_run(pick_demos, toy_run, root / str(i), overrides) for i, (overrides, _) in enumerate(BAD_CONFIGS)]
+    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases))}
+
+
+@pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
+def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, message):
+    error = bad_config_errors[" ".join(overrides)]
+    assert error is not None and message in error, error
+
+
+def test_a_bad_config_on_the_command_line_exits_with_its_message(pick_demos, toy_run, tmp_path):
+    overrides, message = BAD_CONFIGS[0]
+    proc = run_recipe(*bad_config_run(pick_demos, toy_run, tmp_path / "bad", overrides))
+    assert proc.returncode != 0 and message in proc.stderr
 
 
 def test_binning_action_tokens_by_config_alone(pick_demos, tmp_path):

@@ -17,6 +17,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from mmada_rl.baselines.rl import (OneStepChunkActor, RLAgent, RLNetworkConfig, is_rl_agent_dir, load_rl_actor, make_actor,
                                    make_qvalue, make_value)
 from mmada_rl.evaluation import EVAL_SEED_BASE, evaluate
+from recipe_errors import recipe_errors
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -231,13 +232,29 @@ def test_interrupted_run_resumes_from_its_last_checkpoint(toy_runs, state_demos,
         assert extra["env_steps"] == 64 and extra["replay_buffer"].shape == (64,)  # 32 restored + 32 new transitions
 
 
-@pytest.mark.parametrize("overrides, message", [
+BAD_CONFIGS = [
     (["algo=dqn"], "algo='dqn' is not an RL baseline; use algo=ppo, algo=sac or algo=iql"),
     (["algo=sac", "collector.total_env_steps=50"], "must be a positive multiple of collector.frames_per_batch=32"),
     (["algo=ppo", "loss.ppo.minibatch_size=10"], "must be a multiple of loss.ppo.minibatch_size=10"),
     (["device=cuda:0"], "recipe runs on the CPU only"),
-])
-def test_bad_configs_fail_with_one_clear_error(tmp_path, overrides, message):
+]
+
+
+@pytest.fixture(scope="module")
+def bad_config_errors(tmp_path_factory) -> dict[str, str | None]:
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    root = tmp_path_factory.mktemp("bad_configs")
+    cases = [[f"run_dir={root / str(i)}", *overrides] for i, (overrides, _) in enumerate(BAD_CONFIGS)]
+    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases, "online_toy"))}
+
+
+@pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
+def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, message):
+    error = bad_config_errors[" ".join(overrides)]
+    assert error is not None and message in error, error
+
+
+def test_a_bad_config_on_the_command_line_exits_with_its_message(tmp_path):
+    overrides, message = BAD_CONFIGS[0]
     proc = run_recipe(f"run_dir={tmp_path}", *overrides, timeout=120)
-    assert proc.returncode != 0
-    assert message in proc.stderr
+    assert proc.returncode != 0 and message in proc.stderr
