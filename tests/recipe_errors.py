@@ -18,6 +18,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -31,6 +32,26 @@ def recipe_errors(recipe: str | Path, cases: list[list[str]], config_name: str =
     if proc.returncode != 0:
         raise RuntimeError(f"recipe_errors.py failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def errors_by_config(recipe: str | Path, bad_configs: list[tuple[list[str], str]],
+                     command: Callable[[Path, list[str]], list[str]], root: Path,
+                     config_name: str = "toy") -> dict[str, str | None]:
+    """:func:`recipe_errors` of each ``(overrides, message)`` of ``bad_configs``, run as ``command(run_dir, overrides)``
+    (the whole list of overrides) with a run directory of its own under ``root``; keyed by :func:`config_key`."""
+    cases = [command(root / str(i), overrides) for i, (overrides, _) in enumerate(bad_configs)]
+    errors = recipe_errors(recipe, cases, config_name)
+    return {config_key(overrides): error for (overrides, _), error in zip(bad_configs, errors)}
+
+
+def config_key(overrides: list[str]) -> str:
+    return " ".join(overrides)
+
+
+def check_error(errors: dict[str, str | None], overrides: list[str], message: str) -> None:
+    """Assert that the configuration ``overrides`` ended with an error that says ``message``."""
+    error = errors[config_key(overrides)]
+    assert error is not None and message in error, error
 
 
 def _main(recipe: Path, config_name: str, cases: list[list[str]]) -> list[str | None]:

@@ -30,7 +30,7 @@ from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAM
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from mmada_rl.training.checkpoint import TRAINER_FILE, latest_checkpoint, load_checkpoint
 from checkpoint_checks import check_average_beside_own_weights, weights
-from recipe_errors import recipe_errors
+from recipe_errors import check_error, errors_by_config
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -1312,16 +1312,14 @@ BAD_CONFIGS = [
 @pytest.fixture(scope="module")
 def bad_config_errors(toy_pretrain_run, pick_demos, tmp_path_factory) -> dict[str, str | None]:
     """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
-    root = tmp_path_factory.mktemp("bad_configs")
-    cases = [[f"pretrained={toy_pretrain_run}", f"run_dir={root / str(i)}", f"demos.dir={pick_demos}", *overrides]
-             for i, (overrides, _) in enumerate(BAD_CONFIGS)]
-    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases))}
+    return errors_by_config(RECIPE, BAD_CONFIGS, lambda run_dir, overrides: [
+        f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *overrides],
+        tmp_path_factory.mktemp("bad_configs"))
 
 
 @pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
 def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, message):
-    error = bad_config_errors[" ".join(overrides)]
-    assert error is not None and message in error, error
+    check_error(bad_config_errors, overrides, message)
 
 
 def test_a_bad_config_on_the_command_line_exits_with_its_message(toy_pretrain_run, pick_demos, tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -13,7 +14,7 @@ from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, pad_state
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY, STATE_KEY, TASK_INDEX_KEY
 from mmada_rl.policy.model import instructions_of
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
-from recipe_errors import recipe_errors
+from recipe_errors import check_error, errors_by_config
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -180,15 +181,12 @@ def bad_config_run(pick_demos: Path, run_dir: Path, overrides: list[str]) -> lis
 @pytest.fixture(scope="module")
 def bad_config_errors(pick_demos, push_demos, tmp_path_factory) -> dict[str, str | None]:
     """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
-    root = tmp_path_factory.mktemp("bad_configs")
-    cases = [bad_config_run(pick_demos, root / str(i), overrides) for i, (overrides, _) in enumerate(BAD_CONFIGS)]
-    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases))}
+    return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, pick_demos), tmp_path_factory.mktemp("bad_configs"))
 
 
 @pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
 def test_multitask_bad_buffers_or_cameras_are_one_clear_error(bad_config_errors, overrides, message):
-    error = bad_config_errors[" ".join(overrides)]
-    assert error is not None and message in error, error
+    check_error(bad_config_errors, overrides, message)
 
 
 def test_a_bad_multitask_config_on_the_command_line_exits_with_its_message(pick_demos, push_demos, tmp_path):

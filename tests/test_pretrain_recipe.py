@@ -6,13 +6,14 @@ import shutil
 import subprocess
 import sys
 import warnings
+from functools import partial
 from pathlib import Path
 
 import pytest
 import torch
 
 from checkpoint_checks import check_average_beside_own_weights, weights
-from recipe_errors import recipe_errors
+from recipe_errors import check_error, errors_by_config
 from script_loader import load_script
 from mmada_rl.cli import main as cli_main
 from mmada_rl.evaluation import load_actor
@@ -258,15 +259,13 @@ def bad_config_run(pick_demos: Path, toy_run: Path, run_dir: Path, overrides: li
 @pytest.fixture(scope="module")
 def bad_config_errors(pick_demos, toy_run, tmp_path_factory) -> dict[str, str | None]:
     """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
-    root = tmp_path_factory.mktemp("bad_configs")
-    cases = [bad_config_run(pick_demos, toy_run, root / str(i), overrides) for i, (overrides, _) in enumerate(BAD_CONFIGS)]
-    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases))}
+    return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, pick_demos, toy_run),
+                            tmp_path_factory.mktemp("bad_configs"))
 
 
 @pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
 def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, message):
-    error = bad_config_errors[" ".join(overrides)]
-    assert error is not None and message in error, error
+    check_error(bad_config_errors, overrides, message)
 
 
 def test_a_bad_config_on_the_command_line_exits_with_its_message(pick_demos, toy_run, tmp_path):

@@ -17,7 +17,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from mmada_rl.baselines.rl import (OneStepChunkActor, RLAgent, RLNetworkConfig, is_rl_agent_dir, load_rl_actor, make_actor,
                                    make_qvalue, make_value)
 from mmada_rl.evaluation import EVAL_SEED_BASE, evaluate
-from recipe_errors import recipe_errors
+from recipe_errors import check_error, errors_by_config
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -243,15 +243,13 @@ BAD_CONFIGS = [
 @pytest.fixture(scope="module")
 def bad_config_errors(tmp_path_factory) -> dict[str, str | None]:
     """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
-    root = tmp_path_factory.mktemp("bad_configs")
-    cases = [[f"run_dir={root / str(i)}", *overrides] for i, (overrides, _) in enumerate(BAD_CONFIGS)]
-    return {" ".join(o): e for (o, _), e in zip(BAD_CONFIGS, recipe_errors(RECIPE, cases, "online_toy"))}
+    return errors_by_config(RECIPE, BAD_CONFIGS, lambda run_dir, overrides: [f"run_dir={run_dir}", *overrides],
+                            tmp_path_factory.mktemp("bad_configs"), "online_toy")
 
 
 @pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
 def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, message):
-    error = bad_config_errors[" ".join(overrides)]
-    assert error is not None and message in error, error
+    check_error(bad_config_errors, overrides, message)
 
 
 def test_a_bad_config_on_the_command_line_exits_with_its_message(tmp_path):
