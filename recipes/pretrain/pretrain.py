@@ -87,7 +87,7 @@ def evaluate_saved(cfg: DictConfig, model, ema, run_dir: Path | None = None) -> 
     """``eval/...`` of the weights the run saves (the moving average with ``ema.enabled``), and with
     ``ema.evaluate_raw`` ``eval_raw/...`` of the optimizer's own weights. With ``run_dir`` (the end of the run),
     the evaluations are also written, episode by episode, to ``run_dir/final_eval/`` and ``run_dir/final_eval_raw/``
-    (:func:`evaluate`), as the run's newest checkpoint."""
+    (:func:`evaluate`), naming the run's newest checkpoint as the policy evaluated."""
     def record(name: str) -> Path | None:
         return None if run_dir is None else run_dir / name
 
