@@ -6,6 +6,7 @@ import math
 import shutil
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -1309,12 +1310,16 @@ BAD_CONFIGS = [
 ]
 
 
+def bad_config_run(pretrained: Path, pick_demos: Path, run_dir: Path, overrides: list[str]) -> list[str]:
+    """The toy recipe from ``pretrained`` on ``pick_demos``, with ``overrides``."""
+    return [f"pretrained={pretrained}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *overrides]
+
+
 @pytest.fixture(scope="module")
 def bad_config_errors(toy_pretrain_run, pick_demos, tmp_path_factory) -> dict[str, str | None]:
     """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
-    return errors_by_config(RECIPE, BAD_CONFIGS, lambda run_dir, overrides: [
-        f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *overrides],
-        tmp_path_factory.mktemp("bad_configs"))
+    return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, toy_pretrain_run, pick_demos),
+                            tmp_path_factory.mktemp("bad_configs"))
 
 
 @pytest.mark.parametrize("overrides, message", BAD_CONFIGS)
@@ -1324,7 +1329,7 @@ def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, mes
 
 def test_a_bad_config_on_the_command_line_exits_with_its_message(toy_pretrain_run, pick_demos, tmp_path):
     overrides, message = BAD_CONFIGS[0]
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}", *overrides)
+    proc = run_recipe(*bad_config_run(toy_pretrain_run, pick_demos, tmp_path / "bad", overrides))
     assert proc.returncode != 0 and message in proc.stderr
 
 

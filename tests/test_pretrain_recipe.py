@@ -49,7 +49,7 @@ def test_toy_recipe_trains_logs_checkpoints_and_evaluates(toy_run):
     assert (toy_run / "logs" / "scalars" / "train" / "loss_action.csv").exists()  # TorchRL CSV logger
 
 
-def test_evaluation_at_the_end_is_recorded_episode_by_episode_for_pairing(toy_run, tmp_path):
+def test_evaluation_at_the_end_is_recorded_episode_by_episode_for_pairing(toy_run):
     recorded = json.loads((toy_run / "final_eval" / "eval.json").read_text())  # mmada-rl eval's format
     final = json.loads((toy_run / "final.json").read_text())
     assert {k: v for k, v in recorded.items() if k.startswith("eval/")} == {k: v for k, v in final.items() if k != "step"}
@@ -182,12 +182,12 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     assert [r["step"] for r in own_rows["seeds"]] == [6, 6] and own_rows["seeds"][1]["source"] == f"{averaged}@6@raw"
     for flag in ("is_grasped", "is_obj_placed"):  # the stages logged with each evaluation
         assert average["reached"][flag]["rate"] == final[f"eval/reached/{flag}"]
+        assert own_rows["reached"][flag]["rate"] == final[f"eval_raw/reached/{flag}"]
     # both evaluations at the end are recorded episode by episode, the own weights' marked as such
     for name, prefix, own_weights in (("final_eval", "eval/", False), ("final_eval_raw", "eval_raw/", True)):
         recorded = json.loads((averaged / name / "eval.json").read_text())
         assert recorded["own_weights"] is own_weights and recorded["eval/success_once"] == final[f"{prefix}success_once"]
         assert recorded["checkpoint"] == str(averaged / "checkpoints" / "step_00000006")
-        assert own_rows["reached"][flag]["rate"] == final[f"eval_raw/reached/{flag}"]
     with pytest.raises(ValueError, match=r"eval_raw/success_once.csv is missing or empty\) \(a pretraining run logs it"):
         seeds.main(["--group", "plain", f"{toy_run}@raw", "--out", str(tmp_path)])
 
