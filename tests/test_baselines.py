@@ -31,6 +31,7 @@ from mmada_rl.data import StateDropout
 from mmada_rl.evaluation import evaluate, load_actor, resolve_model_dir
 from mmada_rl.keys import ACTION_CHUNK_KEY, ACTION_IS_PAD_KEY, ACTION_KEY, IMAGE_KEY, STATE_KEY
 from mmada_rl.training import WeightEMA, autocast, optimizer_step
+from recipe_runs import run_in_one_process
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "baselines" / "imitation.py"
@@ -301,12 +302,11 @@ def common(run_dir, demos) -> list[str]:
 @pytest.fixture(scope="module")
 def toy_runs(pick_demos, tmp_path_factory) -> dict[str, Path]:
     """Four toy steps of each algo, checkpoints at 2 and 4, a one-episode evaluation at the end."""
-    runs = {}
-    for algo in sorted(ALGOS):
-        run_dir = tmp_path_factory.mktemp(algo) / "run"
-        proc = run_recipe(f"algo={algo}", *common(run_dir, pick_demos), "eval.episodes=1", "eval.max_episode_steps=6")
+    runs = {algo: tmp_path_factory.mktemp(algo) / "run" for algo in sorted(ALGOS)}
+    done = run_in_one_process(RECIPE, [[f"algo={algo}", *common(run_dir, pick_demos), "eval.episodes=1",
+                                        "eval.max_episode_steps=6"] for algo, run_dir in runs.items()])
+    for proc in done:
         assert proc.returncode == 0, proc.stderr[-3000:]
-        runs[algo] = run_dir
     return runs
 
 
@@ -412,8 +412,10 @@ def test_recipe_resumes_with_the_same_batches_and_noise(toy_runs, pick_demos, tm
 
 def test_recipe_trains_a_state_observation_reference_and_evaluates_it_on_the_state(state_demos, tmp_path):
     run_dir = tmp_path / "bc_state"
-    proc = run_recipe("algo=bc", "env.obs_mode=state", *common(run_dir, state_demos), "eval.episodes=1",
-                      "eval.max_episode_steps=4", "model.encoder.drop_state_dims=[9,10,11,12,13,14,15,16,17]")
+    proc, mismatch = run_in_one_process(RECIPE, [
+        ["algo=bc", "env.obs_mode=state", *common(run_dir, state_demos), "eval.episodes=1", "eval.max_episode_steps=4",
+         "model.encoder.drop_state_dims=[9,10,11,12,13,14,15,16,17]"],
+        ["algo=bc", *common(tmp_path / "mismatch", state_demos), "eval.episodes=0"]])
     assert proc.returncode == 0, proc.stderr[-3000:]
     policy = load_policy(run_dir / "checkpoints" / "step_00000004" / "model")
     assert policy.obs_mode == "state" and policy.image_size is None and policy.encoder.cnn is None
@@ -427,8 +429,7 @@ def test_recipe_trains_a_state_observation_reference_and_evaluates_it_on_the_sta
     td = TensorDict({STATE_KEY: torch.randn(3, state_dim)}, batch_size=[3])
     assert policy(td)[ACTION_CHUNK_KEY].shape == (3, 5, A)  # the toy config's K
     # an rgb policy on a state buffer is one clear error (the buffer's mode must match env.obs_mode)
-    proc = run_recipe("algo=bc", *common(tmp_path / "mismatch", state_demos), "eval.episodes=0")
-    assert proc.returncode != 0 and "obs_mode" in proc.stderr
+    assert mismatch.returncode != 0 and "obs_mode" in mismatch.error
 
 
 def test_recipe_rejects_an_unknown_algo(pick_demos, tmp_path):
@@ -521,30 +522,32 @@ def test_bc_image_cnn_initialises_the_denoisers_own(toy_runs, toy_pretrain_run, 
               "optim.total_steps=2", "optim.warmup_steps=1", "eval.episodes=0", "checkpoint.interval=2",
               "model.denoiser_overrides.cross_attention_to_visual=true", f"model.visual_encoder_init={toy_runs['bc']}"]
 
-    def pretrain_cnn(name, *overrides) -> tuple[subprocess.CompletedProcess, dict]:
-        run_dir = tmp_path / name
-        proc = subprocess.run([sys.executable, str(pretrain), f"run_dir={run_dir}", *common, *overrides], cwd=REPO,
-                              capture_output=True, text=True, timeout=600)
-        if proc.returncode:
-            return proc, {}
-        saved = load_file(str(resolve_model_dir(run_dir) / "denoiser.safetensors"))
-        return proc, {k.removeprefix("visual_encoder.cnn."): v for k, v in saved.items() if k.startswith("visual_encoder.cnn.")}
+    runs = {"frozen": ["model.denoiser_overrides.visual_encoder_channels=[16,32,64]", "model.visual_encoder_freeze=true"],
+            "trained": ["model.denoiser_overrides.visual_encoder_channels=[16,32,64]"],
+            "widths": ["model.denoiser_overrides.visual_encoder_channels=[32,64,128]"],
+            "ours": ["model.denoiser_overrides.visual_encoder_channels=[16,32,64]",
+                     f"model.visual_encoder_init={toy_pretrain_run}"]}  # a masked-diffusion run, not a baseline
+    done = dict(zip(runs, run_in_one_process(pretrain, [[f"run_dir={tmp_path / name}", *common, *overrides]
+                                                          for name, overrides in runs.items()])))
 
-    proc, frozen = pretrain_cnn("frozen", "model.denoiser_overrides.visual_encoder_channels=[16,32,64]",
-                                "model.visual_encoder_freeze=true")
+    def denoiser_cnn(name) -> dict:
+        saved = load_file(str(resolve_model_dir(tmp_path / name) / "denoiser.safetensors"))
+        return {k.removeprefix("visual_encoder.cnn."): v for k, v in saved.items() if k.startswith("visual_encoder.cnn.")}
+
+    proc = done["frozen"]
     assert proc.returncode == 0, proc.stderr[-3000:]
+    frozen = denoiser_cnn("frozen")
     assert "the denoiser's CNN starts from" in proc.stdout and "(frozen)" in proc.stdout
     assert len(frozen) == 12  # 3 convolutions and 3 GroupNorms, weight and bias each
     for key, value in frozen.items():
         torch.testing.assert_close(value, bc_cnn[key], rtol=0, atol=0)
-    proc, trained = pretrain_cnn("trained", "model.denoiser_overrides.visual_encoder_channels=[16,32,64]")
+    proc = done["trained"]
     assert proc.returncode == 0, proc.stderr[-3000:]
+    trained = denoiser_cnn("trained")
     moved = [float((trained[key] - bc_cnn[key]).abs().max()) for key in trained]
     assert 0 < max(moved) < 0.01  # two small steps away from BC's weights, not from a fresh initialisation
-    proc, _ = pretrain_cnn("widths", "model.denoiser_overrides.visual_encoder_channels=[32,64,128]")
-    assert proc.returncode != 0
-    assert "does not begin with this encoder's conv_stack (convolution widths [32, 64, 128]" in proc.stderr
-    assert "the source CNN (convolution widths [16, 32, 64]" in proc.stderr
-    proc, _ = pretrain_cnn("ours", "model.denoiser_overrides.visual_encoder_channels=[16,32,64]",
-                           f"model.visual_encoder_init={toy_pretrain_run}")  # a masked-diffusion run, not a baseline
-    assert proc.returncode != 0 and "is not a baseline policy (BC or Diffusion Policy)" in proc.stderr
+    assert done["widths"].returncode != 0 and done["ours"].returncode != 0
+    widths = done["widths"].error
+    assert "does not begin with this encoder's conv_stack (convolution widths [32, 64, 128]" in widths
+    assert "the source CNN (convolution widths [16, 32, 64]" in widths
+    assert "is not a baseline policy (BC or Diffusion Policy)" in done["ours"].error

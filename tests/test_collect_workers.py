@@ -105,8 +105,10 @@ def test_a_failing_worker_ends_the_attempts_with_its_seed_and_message(make, mess
 @pytest.mark.slow
 def test_collect_with_two_workers_records_the_seeds_in_order_and_resumes(tmp_path):
     """Real ManiSkill envs in two spawned workers: random-policy episodes (every one kept) in seed order, the
-    metadata one process would write, and a resumed run continuing from its ``next_seed``."""
-    cfg = EnvConfig(task="PickCube-v1", max_episode_steps=3)
+    metadata one process would write, and a resumed run continuing from its ``next_seed``. State observations:
+    a process's first rendered frame costs ~12 s of CPU here (tests/recipe_runs.py), and what is tested is the
+    workers' order and resumption."""
+    cfg = EnvConfig(task="PickCube-v1", obs_mode="state", max_episode_steps=3)
     out = tmp_path / "buf"
     result = collect(out, cfg, episodes=5, policy="random", workers=2, max_attempts=3, progress=False)
     assert (result.new_episodes, result.attempts) == (3, 3)

@@ -380,7 +380,7 @@ def _wait_for_episodes(out: Path, n: int, proc, timeout=240):
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_interrupted_collection_is_loadable_and_resumes(tmp_path, sig):
     out = tmp_path / "demos"
-    total = 10  # enough that the signal lands while the collector is still working
+    total = 5  # enough that the signal lands while the collector is still working (a planner episode takes seconds)
     cmd = [sys.executable, "-m", "mmada_rl.cli", "collect", "--task", "PickCube-v1", "--episodes", str(total),
            "--out", str(out), "--obs-mode", "state"]
     # a shell that starts jobs in the background hands them SIGINT ignored, and Python then keeps it

@@ -6,6 +6,7 @@ import math
 import shutil
 import subprocess
 import sys
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from mmada_rl.policy import DECODING_PATH_KEY, MMaDAActor, MMaDAEnsemble, MMaDAM
 from mmada_rl.policy.execution import ChunkReward, ExecutionNoise, StepLog
 from mmada_rl.training.checkpoint import TRAINER_FILE, latest_checkpoint, load_checkpoint
 from checkpoint_checks import check_average_beside_own_weights, weights
-from recipe_errors import check_error, errors_by_config
+from recipe_runs import RecipeRun, check_error, errors_by_config, run_in_one_process
 from script_loader import load_script
 
 pytestmark = pytest.mark.filterwarnings("ignore::mmada_rl.tokenizers.ActionOutOfRangeWarning")
@@ -42,6 +43,11 @@ RECIPE = REPO / "recipes" / "finetune" / "finetune.py"
 def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(RECIPE), *map(str, overrides)], cwd=REPO, capture_output=True, text=True,
                           timeout=timeout)
+
+
+def run_recipes(*runs: list) -> list[RecipeRun]:
+    """Each list of overrides in ``runs``, run in order in one process (tests/recipe_runs.py)."""
+    return run_in_one_process(RECIPE, [list(map(str, overrides)) for overrides in runs])
 
 
 def recipe_utils():
@@ -931,10 +937,9 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     as in the uninterrupted run (not the run's first one again)."""
     resumed = tmp_path / "resumed"
     args = [f"pretrained={toy_pretrain_run}", f"run_dir={resumed}", f"demos.dir={pick_demos}", *COMMON]
-    first = run_recipe(*args, "collector.total_env_steps=20")
+    first, proc = run_recipes([*args, "collector.total_env_steps=20"], [*args, "checkpoint.resume=true"])
     assert first.returncode == 0, first.stderr[-3000:]
     assert _checkpoint_extra(resumed / "checkpoints" / "step_00000002")["initial_states_begun"] == 2
-    proc = run_recipe(*args, "checkpoint.resume=true")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "iteration 2, 20 env steps, 4 online rows; training episodes continue from initial state 2" in proc.stdout
     history = json.loads((resumed / "eval_history.json").read_text())
@@ -972,11 +977,14 @@ def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run,
     """collector.overlap: the same run as ``rwr_run`` with each next batch collected during the updates."""
     run_dir = tmp_path / "overlap"
     args = [f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", f"collector.overlap={overlap}"]
-    proc = run_recipe(*args, *COMMON)
+    proc, resumed = run_recipes([*args, *COMMON], [*args, *COMMON[:3], "collector.total_env_steps=50",
+                                                   "collector.decisions_per_batch=2", "checkpoint.interval=1",
+                                                   "checkpoint.keep=5", "checkpoint.resume=true"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"each batch is collected in {where} while the previous batch's updates run" in proc.stdout
-    history = json.loads((run_dir / "eval_history.json").read_text())
-    assert [h["env_steps"] for h in history] == [0, 30] and history[-1]["updates"] == 6
+    assert "done: 30 env steps, 6 updates" in proc.stdout
+    history = json.loads((run_dir / "eval_history.json").read_text())  # the first run's evaluations, the resumed one's
+    assert [(h["env_steps"], h["updates"]) for h in history] == [(0, 0), (30, 6), (50, 10)]
     if overlap == "true":
         # the first batch is collected before any update, by the pretrained weights and the same RNG draws as the
         # sequential run's; later ones by weights one iteration older than the sequential run's (a process samples
@@ -985,16 +993,14 @@ def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run,
     timing = run_dir / "logs" / "scalars" / "time"
     collected = [float(row.split(",")[1]) for row in (timing / "collect_ahead_s.csv").read_text().split()]
     iterations = [float(row.split(",")[1]) for row in (timing / "iteration_s.csv").read_text().split()]
-    assert len(collected) == len(iterations) == 3 and all(s > 0 for s in collected + iterations)
-    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir())[-1] == "step_00000003"
+    assert len(collected) == len(iterations) == 3 + 2 and all(s > 0 for s in collected + iterations)
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == [f"step_0000000{i}" for i in range(1, 6)]
     rng = load_checkpoint(run_dir / "checkpoints" / "step_00000003").trainer_state["rng"]["generators"]
     if overlap == "process":  # the tokens sampled in the collector's process: their RNG state came back and is saved
         fresh = recipe_utils().make_sampling_generator(OmegaConf.create({"seed": 0}))
         assert not torch.equal(rng["sampling"], fresh.get_state())
     else:  # they draw from the learner's own torch RNG, saved as "torch"
         assert "sampling" not in rng
-    resumed = run_recipe(*args, *COMMON[:3], "collector.total_env_steps=50", "collector.decisions_per_batch=2",
-                         "checkpoint.interval=1", "checkpoint.resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "iteration 3, 30 env steps" in resumed.stdout and "done: 50 env steps, 10 updates" in resumed.stdout
     assert "training episodes continue from initial state 3" in resumed.stdout
@@ -1004,12 +1010,13 @@ def test_overlapped_collection_with_execution_noise_is_the_same_run_in_a_thread_
         toy_pretrain_run, pick_demos, tmp_path):
     """Greedy chunks with their own noise RNG draw nothing from the RNG the updates use, and the collector's process
     continues the learner's noise RNG: the run in a thread and in a process are the same, bit for bit."""
-    logs = []
-    for name in ("thread", "process"):
-        proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
+    names = ("thread", "process")
+    runs = run_recipes(*([f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
                           *COMMON, "eval.episodes=0", f"collector.overlap={name}", "collector.action_noise=0.1",
                           "advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
-                          "loss.rwr.standardize_advantage=true")
+                          "loss.rwr.standardize_advantage=true"] for name in names))
+    logs = []
+    for name, proc in zip(names, runs):
         assert proc.returncode == 0, proc.stderr[-3000:]
         logs.append([_logged(tmp_path / name, key) for key in ("chunk_reward", "loss", "grad_norm")])
     assert logs[0] == logs[1] and len(logs[0][1]) == 3
@@ -1076,7 +1083,7 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     assert _logged(resumed, "ema_decay")[-1] == _logged(averaged, "ema_decay")[-1]  # updates 5 and 6, not 1 and 2
 
 
-@pytest.mark.parametrize("name, overrides, steps", [
+VARIANTS = [
     ("ppo_group", ["algo=ppo", "advantage.estimator=group", "advantage.group_size=2", "collector.decisions_per_batch=2",
                    "loss.ppo.denoising_steps=2", "eval.episodes=1", "eval.max_episode_steps=4", "eval.sample_temperature=1.0",
                    "loss.ppo.demo_coef=0.5", "loss.ppo.tokens=action"],
@@ -1104,12 +1111,45 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     ("noisy_return_to_go_baseline", ["advantage.estimator=return_to_go", "advantage.baseline_episodes=4",
                                      "loss.rwr.weighting=signed", "loss.rwr.normalize_weights=true",
                                      "collector.action_noise=0.1", "eval.episodes=0"], 30),
-])
-def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, overrides, steps):
+]
+
+
+#: The ensemble's partner: the toy pretraining run's first checkpoint.
+PARTNER = Path("checkpoints") / "step_00000003" / "model"
+NOISY_SIGNED_PRIVILEGED = ["eval.episodes=0", "value.input=privileged_state", "loss.rwr.weighting=signed",
+                           "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1"]
+
+
+@dataclass
+class VariantRuns:
+    root: Path  # each run in root / name
+    runs: dict[str, RecipeRun]  # each run's output by name
+    partner: dict[str, torch.Tensor]  # the ensemble partner's denoiser weights before the runs
+
+
+@pytest.fixture(scope="module")
+def variant_runs(toy_pretrain_run, pick_demos, tmp_path_factory) -> VariantRuns:
+    """Toy runs from ``toy_pretrain_run``, all in one process: each of ``VARIANTS``; the critic warm-up's; acting
+    with a frozen partner (``ensemble``) and the two configurations that refuse one."""
+    root = tmp_path_factory.mktemp("variants")
+    partner = {k: v.clone() for k, v in MMaDAModel.load(toy_pretrain_run / PARTNER).denoiser.state_dict().items()}
+    ensemble = f"collector.ensemble_with=['{toy_pretrain_run / PARTNER}']"
+    runs = {name: [*overrides, "env.max_episode_steps=10", f"collector.total_env_steps={steps}"]
+            for name, overrides, steps in VARIANTS}
+    runs["critic_warmup"] = [*COMMON, *NOISY_SIGNED_PRIVILEGED, "value.warmup_env_steps=20"]
+    runs["ensemble"] = [*COMMON, *NOISY_SIGNED_PRIVILEGED, ensemble]
+    runs["ensemble_without_noise"] = ["collector.action_noise=0", ensemble]
+    runs["ensemble_with_ppo"] = ["algo=ppo", "collector.action_noise=0", ensemble]
+    done = run_recipes(*([f"pretrained={toy_pretrain_run}", f"run_dir={root / name}", f"demos.dir={pick_demos}", *overrides]
+                         for name, overrides in runs.items()))
+    return VariantRuns(root, dict(zip(runs, done)), partner)
+
+
+@pytest.mark.parametrize("name, overrides, steps", VARIANTS)
+def test_advantage_variants_run(variant_runs, toy_pretrain_run, pick_demos, name, overrides, steps):
     """Episode-level advantages: PPO with group-relative returns (evaluated with sampled decoding); RWR imitating
     the successful rollouts. Per-chunk ones: the noisy rollouts' chunks weighted by their GAE advantages, signed."""
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}", *overrides,
-                      "env.max_episode_steps=10", f"collector.total_env_steps={steps}")
+    root, proc = variant_runs.root, variant_runs.runs[name]
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"{steps} env steps" in proc.stdout and "0 updates" not in proc.stdout
     # the start-up line describes the updates this algorithm makes (PPO trains on fresh decisions only)
@@ -1117,52 +1157,53 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
     assert ("exploration: greedy chunks + N(0, 0.1^2)" in proc.stdout) == name.startswith("noisy")
     if name == "noisy_gae_signed":  # a value network was trained (first on the demos) and some chunks were pushed down
         assert "value network fitted to the demonstrations' returns: 3 steps" in proc.stdout
-        assert (tmp_path / name / "logs" / "scalars" / "value" / "pretrain_loss.csv").read_text().strip()
-        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        assert (root / name / "logs" / "scalars" / "value" / "pretrain_loss.csv").read_text().strip()
+        scalars = root / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
         assert any(float(line.split(",")[1]) > 0 for line in (scalars / "negative_fraction.csv").read_text().splitlines())
     if name == "noisy_return_to_go":  # no critic was fitted, and the stored advantages are the returns to go
-        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        scalars = root / name / "logs" / "scalars" / "train"
         assert not (scalars / "value_loss.csv").exists() and (scalars / "advantage_abs.csv").read_text().strip()
-        rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(tmp_path / name / "online_buffer")
+        rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(root / name / "online_buffer")
         assert len(rows) and torch.equal(rows.get(ADVANTAGE_KEY).reshape(-1), rows.get(VALUE_TARGET_KEY).reshape(-1))
         # optim.lr_decay=cosine: each iteration's rate, logged at its env steps, falls to 0.1 x 1e-4 at the budget
         lrs = [tuple(map(float, line.split(","))) for line in (scalars / "lr.csv").read_text().split()]
         assert len(lrs) >= 2 and all(b[1] < a[1] for a, b in zip(lrs, lrs[1:]))
         assert lrs[0][1] < 1e-4 and lrs[-1][0] >= steps and lrs[-1][1] == pytest.approx(1e-5)
     if name == "noisy_return_to_go_bf16":  # the updates' forward pass in bfloat16: finite losses, float32 weights
-        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        scalars = root / name / "logs" / "scalars" / "train"
         losses = [float(line.split(",")[1]) for line in (scalars / "loss.csv").read_text().split()]
         assert losses and all(math.isfinite(v) for v in losses)
-        assert all(w.dtype == torch.float32 for w in weights(latest_checkpoint(tmp_path / name)).values())
+        assert all(w.dtype == torch.float32 for w in weights(latest_checkpoint(root / name)).values())
     if name == "noisy_return_to_go_baseline":  # returns to go stored as value targets, relative ones as advantages
-        rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(tmp_path / name / "online_buffer")
+        rows = load_script("benchmarks/finetune_gradients.py").load_online_rows(root / name / "online_buffer")
         advantage, to_go = rows.get(ADVANTAGE_KEY).reshape(-1), rows.get(VALUE_TARGET_KEY).reshape(-1)
         assert len(rows) and not torch.equal(advantage, to_go)
-        kept = load_checkpoint(tmp_path / name).trainer_state["extra"]["advantage_baseline"]
+        kept = load_checkpoint(root / name).trainer_state["extra"]["advantage_baseline"]
         assert kept["episodes"] == 4 and 2 <= len(kept["window"]) <= 4  # checkpointed for a resume
-        common = (f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
+        common = (f"pretrained={toy_pretrain_run}", f"run_dir={root / name}", f"demos.dir={pick_demos}",
                   *(o for o in overrides if not o.startswith("advantage.baseline_episodes")),
                   "env.max_episode_steps=10", "checkpoint.resume=true")
-        shorter = run_recipe(*common, "advantage.baseline_episodes=2", f"collector.total_env_steps={steps + 30}")
+        shorter, off = run_recipes(
+            [*common, "advantage.baseline_episodes=2", f"collector.total_env_steps={steps + 30}"],
+            [*common, "advantage.baseline_episodes=0", "loss.rwr.standardize_advantage=true",
+             f"collector.total_env_steps={steps + 30}"])  # the budget spent: it loads and stops
         assert shorter.returncode == 0, shorter.stderr[-3000:]
-        kept = load_checkpoint(tmp_path / name).trainer_state["extra"]["advantage_baseline"]
+        kept = load_checkpoint(root / name).trainer_state["extra"]["advantage_baseline"]
         assert kept["episodes"] == 2 and len(kept["window"]) == 2  # the resumed run's own window length
-        off = run_recipe(*common, "advantage.baseline_episodes=0", "loss.rwr.standardize_advantage=true",
-                         f"collector.total_env_steps={steps + 30}")  # the budget spent: it loads and stops
         assert off.returncode == 0, off.stderr[-3000:]
         assert "the checkpoint's decision-index baseline (2 episodes) is not used" in off.stdout
     if name == "noisy_privileged_critic":  # GAE's critic read the simulator's state, the policy its pixels
-        scalars = tmp_path / name / "logs" / "scalars" / "train"
+        scalars = root / name / "logs" / "scalars" / "train"
         assert (scalars / "value_loss.csv").read_text().strip()
-        value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]
+        value = load_checkpoint(root / name).trainer_state["extra"]["value"]
         first = next(v for k, v in value.items() if k.endswith("mlp.0.weight"))
         assert first.shape[-1] == 70  # PickCube-v1's privileged state
         assert float(value["module.count"]) > 0 and float(value["module.sum_sq"].sum()) > 0  # its input moments
         # benchmarks/critic_fit.py refits such a critic on the run's stored states and value targets
         bench = load_script("benchmarks/critic_fit.py", "critic_fit")
-        out = tmp_path / "critic_fit"
-        assert bench.main(["--online", str(tmp_path / name / "online_buffer"), "--steps", "3", "--holdout", "0.5",
+        out = root / "critic_fit"
+        assert bench.main(["--online", str(root / name / "online_buffer"), "--steps", "3", "--holdout", "0.5",
                            "--batch-size", "4", "--hidden", "16", "--online-batch", "1", "--online-epochs", "2",
                            "--out", str(out)]) == 0
         fitted = json.loads((out / "critic_fit.json").read_text())
@@ -1174,28 +1215,28 @@ def test_advantage_variants_run(toy_pretrain_run, pick_demos, tmp_path, name, ov
         assert len(fitted["advantage_target_correlation_by_fifth"]) == 5
         assert (out / "critic_fit.png").stat().st_size > 0
     if name == "noisy_privileged_standardized":  # the checkpoint holds the critic's target and input moments
-        value = load_checkpoint(tmp_path / name).trainer_state["extra"]["value"]
+        value = load_checkpoint(root / name).trainer_state["extra"]["value"]
         assert float(value["module.count"]) > 0 and float(value["module.sum_sq"]) > 0  # the value targets'
         assert float(value["module.network.count"]) > 0  # the states'
     if name == "ppo_group":  # evaluated before and after, sampling the tokens at T = 1
-        history = json.loads((tmp_path / name / "eval_history.json").read_text())
+        history = json.loads((root / name / "eval_history.json").read_text())
         assert [h["sample_temperature"] for h in history] == [1.0, 1.0] and history[-1]["env_steps"] == steps
         # the anchor: every PPO minibatch also scored the demonstrations' denoising loss (half the toy batch of 8)
         assert "each with 4 demo windows (demo_coef 0.5)" in proc.stdout
-        anchor = (tmp_path / name / "logs" / "scalars" / "train" / "loss_demo_action.csv").read_text().splitlines()
+        anchor = (root / name / "logs" / "scalars" / "train" / "loss_demo_action.csv").read_text().splitlines()
         assert anchor and all(float(line.split(",")[1]) > 0 for line in anchor)
         # PPO's diagnostics are logged once per iteration, as means over its gradient steps
-        clip = (tmp_path / name / "logs" / "scalars" / "train" / "clip_fraction.csv").read_text().splitlines()
+        clip = (root / name / "logs" / "scalars" / "train" / "clip_fraction.csv").read_text().splitlines()
         assert clip and all(0.0 <= float(line.split(",")[1]) <= 1.0 for line in clip)
 
 
 def test_acting_with_frozen_partners_collects_the_ensemble_chunk_and_trains_the_policy_alone(
-        toy_pretrain_run, model, pick_demos, tmp_path):
+        toy_pretrain_run, model, variant_runs):
     """``collector.ensemble_with``: the fine-tuned policy acts as one MMaDAEnsemble with frozen pretrained policies
     (itself first, the very object the optimizer updates); the run trains it alone and leaves the partners as
     they were; without noise, or with PPO, the option is refused."""
     utils = recipe_utils()
-    partner_dir = toy_pretrain_run / "checkpoints" / "step_00000003" / "model"
+    partner_dir = toy_pretrain_run / PARTNER
     cfg = OmegaConf.create({"device": "cpu", "collector": {"ensemble_with": [str(partner_dir)]}})
     behaviour = utils.make_behaviour(cfg, model)
     assert isinstance(behaviour, MMaDAEnsemble) and len(behaviour.members) == 2 and behaviour.members[0] is model
@@ -1210,23 +1251,18 @@ def test_acting_with_frozen_partners_collects_the_ensemble_chunk_and_trains_the_
         alone = [MMaDAActor(m)(obs.clone()).get(("vla_action", "chunk")) for m in (model, partner)]
     torch.testing.assert_close(acted[..., :6], (alone[0][..., :6] + alone[1][..., :6]) / 2)  # the arm: their mean
 
-    run_dir = tmp_path / "ensemble"
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
-                      "eval.episodes=0", "value.input=privileged_state", "loss.rwr.weighting=signed",
-                      "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1",
-                      f"collector.ensemble_with=['{partner_dir}']")
+    runs = variant_runs.runs
+    run_dir, proc = variant_runs.root / "ensemble", runs["ensemble"]
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "exploration: the greedy mean chunk of this policy and 1 frozen others + N(0, 0.1^2)" in proc.stdout
     assert "done: 30 env steps, 6 updates" in proc.stdout
     trained = MMaDAModel.load(run_dir / "checkpoints" / "step_00000003" / "model").denoiser.state_dict()
     assert any(not torch.equal(t, trained[k]) for k, t in model.denoiser.state_dict().items())
     after = MMaDAModel.load(partner_dir).denoiser.state_dict()
-    assert all(torch.equal(t, after[k]) for k, t in partner.denoiser.state_dict().items())
+    assert all(torch.equal(t, after[k]) for k, t in variant_runs.partner.items())
     # every stored decision holds the executed (ensemble + noise) chunk's tokens, under the fine-tuned policy's tokenizer
     assert len(saved_online_buffer(run_dir)) == 6
-    for overrides in (["collector.action_noise=0"], ["algo=ppo", "collector.action_noise=0"]):
-        bad = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / 'bad'}", f"demos.dir={pick_demos}",
-                         *overrides, f"collector.ensemble_with=['{partner_dir}']")
+    for bad in (runs["ensemble_without_noise"], runs["ensemble_with_ppo"]):
         assert bad.returncode != 0 and "collector.ensemble_with acts with the greedy chunk averaged" in bad.stderr
 
 
@@ -1238,15 +1274,11 @@ def saved_online_buffer(run_dir: Path):
     return buffer
 
 
-def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the_buffer(
-        toy_pretrain_run, model, pick_demos, tmp_path):
+def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the_buffer(model, variant_runs):
     """``value.warmup_env_steps=20`` of a 30-step budget (three iterations of 10): the critic learns on every
     iteration's rollouts, the policy only on the last one's, and the online buffer holds only that iteration's
     decisions (the first two were scored by the cold critic)."""
-    run_dir = tmp_path / "warmup"
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
-                      "eval.episodes=0", "value.input=privileged_state", "loss.rwr.weighting=signed",
-                      "loss.rwr.standardize_advantage=true", "collector.action_noise=0.1", "value.warmup_env_steps=20")
+    run_dir, proc = variant_runs.root / "critic_warmup", variant_runs.runs["critic_warmup"]
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "the critic alone learns for the first 20 env steps" in proc.stdout
     assert "done: 30 env steps, 2 updates" in proc.stdout  # two updates per iteration, the last iteration only
@@ -1317,7 +1349,7 @@ def bad_config_run(pretrained: Path, pick_demos: Path, run_dir: Path, overrides:
 
 @pytest.fixture(scope="module")
 def bad_config_errors(toy_pretrain_run, pick_demos, tmp_path_factory) -> dict[str, str | None]:
-    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_runs.py)."""
     return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, toy_pretrain_run, pick_demos),
                             tmp_path_factory.mktemp("bad_configs"))
 

@@ -14,7 +14,7 @@ from mmada_rl.data import DemoBuffer, MultiTaskWindows, RandomShift, pad_state
 from mmada_rl.keys import GOAL_IMAGE_KEY, IMAGE_KEY, STATE_KEY, TASK_INDEX_KEY
 from mmada_rl.policy.model import instructions_of
 from mmada_rl.tokenizers.from_buffer import TokenizerFitConfig, fit_tokenizers
-from recipe_errors import check_error, errors_by_config
+from recipe_runs import check_error, errors_by_config
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -180,7 +180,7 @@ def bad_config_run(pick_demos: Path, run_dir: Path, overrides: list[str]) -> lis
 
 @pytest.fixture(scope="module")
 def bad_config_errors(pick_demos, push_demos, tmp_path_factory) -> dict[str, str | None]:
-    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_runs.py)."""
     return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, pick_demos), tmp_path_factory.mktemp("bad_configs"))
 
 

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from checkpoint_checks import check_average_beside_own_weights, weights
-from recipe_errors import check_error, errors_by_config
+from recipe_runs import check_error, errors_by_config, run_in_one_process
 from script_loader import load_script
 from mmada_rl.cli import main as cli_main
 from mmada_rl.evaluation import load_actor
@@ -258,7 +258,7 @@ def bad_config_run(pick_demos: Path, toy_run: Path, run_dir: Path, overrides: li
 
 @pytest.fixture(scope="module")
 def bad_config_errors(pick_demos, toy_run, tmp_path_factory) -> dict[str, str | None]:
-    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_runs.py)."""
     return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, pick_demos, toy_run),
                             tmp_path_factory.mktemp("bad_configs"))
 
@@ -390,14 +390,15 @@ def test_bf16_forward_pass_trains_and_saves_float32_weights(toy_run, pick_demos,
     """``optim.precision=bf16``: the recipe trains with its forward pass under autocast to bfloat16, its losses
     those of the same run in float32 (same seed: same windows and masks) to bfloat16's precision; the
     optimizer's weights, hence the saved policy's, stay float32."""
+    precisions = ("fp32", "bf16")
+    runs = run_in_one_process(RECIPE, [[f"run_dir={tmp_path / precision}", f"data.dir={pick_demos}", "data.collect_episodes=0",
+                                        "optim.total_steps=3", "logger.log_interval=1", "num_threads=1", "eval.episodes=0",
+                                        f"tokenizers.dir={toy_run / 'tokenizers'}", f"optim.precision={precision}"]
+                                       for precision in precisions])
     histories = {}
-    for precision in ("fp32", "bf16"):
-        run_dir = tmp_path / precision
-        proc = run_recipe(f"run_dir={run_dir}", f"data.dir={pick_demos}", "data.collect_episodes=0", "optim.total_steps=3",
-                          "logger.log_interval=1", "num_threads=1", "eval.episodes=0",
-                          f"tokenizers.dir={toy_run / 'tokenizers'}", f"optim.precision={precision}")
+    for precision, proc in zip(precisions, runs):
         assert proc.returncode == 0, proc.stderr[-3000:]
-        histories[precision] = json.loads((run_dir / "history.json").read_text())
+        histories[precision] = json.loads((tmp_path / precision / "history.json").read_text())
     assert [h["step"] for h in histories["bf16"]] == [1, 2, 3]
     for low, exact in zip(histories["bf16"], histories["fp32"]):
         assert low["train/loss"] == pytest.approx(exact["train/loss"], rel=0.02)
@@ -413,8 +414,10 @@ def test_held_out_demonstrations_are_scored_while_training(toy_run, pick_demos, 
     run_dir = tmp_path / "val"
     common = [f"data.dir={pick_demos}", "data.collect_episodes=0", f"tokenizers.dir={toy_run / 'tokenizers'}",
               "eval.episodes=0", "logger.log_interval=5"]
-    proc = run_recipe(f"run_dir={run_dir}", *common, "optim.total_steps=3", f"validation.dir={pick_demos}",
-                      "validation.interval=2", "validation.minibatches=1", "validation.batch_size=2")
+    proc, other_task = run_in_one_process(RECIPE, [
+        [f"run_dir={run_dir}", *common, "optim.total_steps=3", f"validation.dir={pick_demos}", "validation.interval=2",
+         "validation.minibatches=1", "validation.batch_size=2"],
+        [f"run_dir={tmp_path / 'bad'}", *common, "optim.total_steps=1", f"validation.dir={push_demos}"]])
     assert proc.returncode == 0, proc.stderr[-3000:]
     history = {row["step"]: row for row in json.loads((run_dir / "history.json").read_text())}
     assert set(history) == {2, 3}  # the report at step 2 is logged although 2 is not a logging step
@@ -423,8 +426,7 @@ def test_held_out_demonstrations_are_scored_while_training(toy_run, pick_demos, 
         assert scores["val/chunk_mae"] > 0 and 0 <= scores["val/action_accuracy"] <= 1
         assert scores["val/loss_action"] > 0 and "val/loss_goal" in scores
     assert (run_dir / "logs" / "scalars" / "val" / "chunk_mae.csv").read_text().count("\n") == 2  # steps 2 and 3
-    proc = run_recipe(f"run_dir={tmp_path / 'bad'}", *common, "optim.total_steps=1", f"validation.dir={push_demos}")
-    assert proc.returncode != 0 and "PushCube-v1" in proc.stderr and "PickCube-v1" in proc.stderr
+    assert other_task.returncode != 0 and "PushCube-v1" in other_task.error and "PickCube-v1" in other_task.error
 
 
 @pytest.mark.parametrize("config, task, fov, width", [("pickcube_cpu", "PickCube-v1", 45, 256),

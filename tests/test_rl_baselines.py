@@ -17,7 +17,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from mmada_rl.baselines.rl import (OneStepChunkActor, RLAgent, RLNetworkConfig, is_rl_agent_dir, load_rl_actor, make_actor,
                                    make_qvalue, make_value)
 from mmada_rl.evaluation import EVAL_SEED_BASE, evaluate
-from recipe_errors import check_error, errors_by_config
+from recipe_runs import check_error, errors_by_config, run_in_one_process
 from script_loader import load_script
 
 REPO = Path(__file__).resolve().parents[1]
@@ -163,15 +163,15 @@ def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def toy_runs(state_demos, tmp_path_factory) -> dict[str, Path]:
-    """Each algo once with online_toy.yaml: 64 env steps, evaluations at 32 and 64 (IQL also at 0), checkpoints kept."""
-    runs = {}
-    for algo in ("ppo", "sac", "iql"):
-        run_dir = tmp_path_factory.mktemp(algo) / "run"
-        proc = run_recipe(f"algo={algo}", f"run_dir={run_dir}", f"data.dir={state_demos}", "data.collect_episodes=0",
-                          "checkpoint.keep=10")
+    """Each algo once with online_toy.yaml, all in one process: 64 env steps, evaluations at 32 and 64 (IQL also at 0),
+    checkpoints kept."""
+    runs = {algo: tmp_path_factory.mktemp(algo) / "run" for algo in ("ppo", "sac", "iql")}
+    done = run_in_one_process(RECIPE, [[f"algo={algo}", f"run_dir={run_dir}", f"data.dir={state_demos}",
+                                        "data.collect_episodes=0", "checkpoint.keep=10"] for algo, run_dir in runs.items()],
+                              "online_toy")
+    for proc in done:
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert "[online] done:" in proc.stdout
-        runs[algo] = run_dir
     return runs
 
 
@@ -242,7 +242,7 @@ BAD_CONFIGS = [
 
 @pytest.fixture(scope="module")
 def bad_config_errors(tmp_path_factory) -> dict[str, str | None]:
-    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_errors.py)."""
+    """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_runs.py)."""
     return errors_by_config(RECIPE, BAD_CONFIGS, lambda run_dir, overrides: [f"run_dir={run_dir}", *overrides],
                             tmp_path_factory.mktemp("bad_configs"), "online_toy")
 
