@@ -1053,9 +1053,13 @@ def test_overlap_benchmark_times_both_loops_on_real_fine_tuning_runs(toy_pretrai
 
 def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(
         rwr_run, toy_pretrain_run, pick_demos, tmp_path):
-    averaged = tmp_path / "ema"
+    averaged, resumed = tmp_path / "ema", tmp_path / "resumed"
     args = [f"pretrained={toy_pretrain_run}", f"demos.dir={pick_demos}", *COMMON, "ema.enabled=true"]
-    proc = run_recipe(*args, f"run_dir={averaged}")
+    # the resumed run: the same run stopped after iteration 2 (the averaged run's first two, bit for bit:
+    # test_resume_continues_from_the_saved_counters), then continued to the budget
+    proc, stopped, again = run_recipes([*args, f"run_dir={averaged}"],
+                                       [*args, f"run_dir={resumed}", "collector.total_env_steps=20"],
+                                       [*args, f"run_dir={resumed}", "checkpoint.resume=true"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     for name in ("chunk_reward", "loss", "grad_norm"):  # the same rollouts and updates as the run without an average
         assert _logged(averaged, name) == _logged(rwr_run, name)
@@ -1072,13 +1076,10 @@ def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and
     check_average_beside_own_weights(averaged / "checkpoints" / "step_00000003", rwr_run / "checkpoints" / "step_00000003",
                                      updates=6)
 
-    resumed = tmp_path / "resumed"  # from iteration 2: the average and the own weights continue where they were
-    (resumed / "checkpoints").mkdir(parents=True)
-    shutil.copytree(averaged / "checkpoints" / "step_00000002", resumed / "checkpoints" / "step_00000002")
-    proc = run_recipe(*args, f"run_dir={resumed}", "checkpoint.resume=true")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    again = resumed / "checkpoints" / "step_00000003"
-    own_again = torch.load(again / "trainer.pt", weights_only=False)["extra"]
+    # from iteration 2: the average and the own weights continue where they were
+    assert stopped.returncode == 0 and again.returncode == 0, (stopped.stderr + again.stderr)[-3000:]
+    assert "iteration 2, 20 env steps" in again.stdout
+    own_again = torch.load(resumed / "checkpoints" / "step_00000003" / "trainer.pt", weights_only=False)["extra"]
     assert own_again["ema_updates"] == 6
     assert _logged(resumed, "ema_decay")[-1] == _logged(averaged, "ema_decay")[-1]  # updates 5 and 6, not 1 and 2
 
