@@ -6,9 +6,9 @@ look-up table once per Vulkan context, about 12 s of CPU on lavapipe. A toy run 
 after that. These helpers start one subprocess for a list of runs instead. It composes each run's
 configuration with Hydra's compose API (the same config files and override grammar as the command line)
 and calls the recipe's ``main`` on it, in the order given, so a later run may resume an earlier one. Each
-run's stdout and stderr are captured on their own; an exception ends that run alone, with exit status 1
-and its traceback on its stderr, as the command line would. What child processes (env workers, a
-collector process) write is not captured.
+run's stdout and stderr (file descriptors 1 and 2, so what its child processes, env workers or a collector
+process, write as well) are captured on their own; an exception ends that run alone, with exit status 1
+and its traceback on its stderr, as the command line would.
 
 Each recipe's tests keep runs from the command line as well: the end-to-end run and a bad configuration, for
 the path through Hydra's entry point to the user's terminal.
@@ -20,8 +20,8 @@ writes to OUT.json one ``{"returncode", "stdout", "stderr", "error"}`` per run.
 from __future__ import annotations
 
 import contextlib
-import io
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -77,7 +77,22 @@ def check_error(errors: dict[str, str | None], overrides: list[str], message: st
     assert error is not None and message in error, error
 
 
-def _run_all(recipe: Path, config_name: str, runs: list[list[str]]) -> list[dict]:
+@contextlib.contextmanager
+def _fd_to_file(fd: int, path: Path):
+    """Point file descriptor ``fd`` (and so whatever writes to it, child processes included) at ``path``."""
+    sys.stdout.flush(), sys.stderr.flush()
+    saved = os.dup(fd)
+    with open(path, "wb") as file:
+        os.dup2(file.fileno(), fd)
+    try:
+        yield
+    finally:
+        sys.stdout.flush(), sys.stderr.flush()
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+def _run_all(recipe: Path, config_name: str, runs: list[list[str]], out_dir: Path) -> list[dict]:
     import importlib.util
 
     from hydra import compose, initialize_config_dir
@@ -87,10 +102,10 @@ def _run_all(recipe: Path, config_name: str, runs: list[list[str]]) -> list[dict
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     results = []
-    for overrides in runs:
-        stdout, stderr = io.StringIO(), io.StringIO()
+    for i, overrides in enumerate(runs):
+        stdout, stderr = out_dir / f"{i}.stdout", out_dir / f"{i}.stderr"
         returncode, error = 0, None
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        with _fd_to_file(1, stdout), _fd_to_file(2, stderr):
             try:
                 with initialize_config_dir(config_dir=str(recipe.parent / "config"), version_base=None):
                     cfg = compose(config_name=config_name, overrides=overrides)
@@ -99,11 +114,11 @@ def _run_all(recipe: Path, config_name: str, runs: list[list[str]]) -> list[dict
                 if not (isinstance(err, SystemExit) and err.code in (0, None)):  # sys.exit(0) ran through
                     traceback.print_exc()
                     returncode, error = 1, f"{type(err).__name__}: {err}"
-        results.append({"returncode": returncode, "stdout": stdout.getvalue(), "stderr": stderr.getvalue(),
-                        "error": error})
+        results.append({"returncode": returncode, "stdout": stdout.read_text(errors="replace"),
+                        "stderr": stderr.read_text(errors="replace"), "error": error})
     return results
 
 
 if __name__ == "__main__":
     recipe_path, config, out_path = Path(sys.argv[1]).resolve(), sys.argv[2], Path(sys.argv[3])
-    out_path.write_text(json.dumps(_run_all(recipe_path, config, json.load(sys.stdin))))
+    out_path.write_text(json.dumps(_run_all(recipe_path, config, json.load(sys.stdin), out_path.parent)))

@@ -937,7 +937,16 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     as in the uninterrupted run (not the run's first one again)."""
     resumed = tmp_path / "resumed"
     args = [f"pretrained={toy_pretrain_run}", f"run_dir={resumed}", f"demos.dir={pick_demos}", *COMMON]
-    first, proc = run_recipes([*args, "collector.total_env_steps=20"], [*args, "checkpoint.resume=true"])
+    older = tmp_path / "older"  # a checkpoint from before the count was saved: the envs start again, as it says
+    shutil.copytree(rwr_run / "checkpoints" / "step_00000002", older / "checkpoints" / "step_00000002")
+    state_file = older / "checkpoints" / "step_00000002" / TRAINER_FILE
+    state = torch.load(state_file, weights_only=False)
+    del state["extra"]["initial_states_begun"]
+    torch.save(state, state_file)
+    first, proc, old = run_recipes(
+        [*args, "collector.total_env_steps=20"], [*args, "checkpoint.resume=true"],
+        [f"pretrained={toy_pretrain_run}", f"run_dir={older}", f"demos.dir={pick_demos}", *COMMON,
+         "checkpoint.resume=true", "collector.total_env_steps=20", "eval.episodes=0"])  # nothing left to run
     assert first.returncode == 0, first.stderr[-3000:]
     assert _checkpoint_extra(resumed / "checkpoints" / "step_00000002")["initial_states_begun"] == 2
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -948,16 +957,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
         assert _logged(resumed, key) == _logged(rwr_run, key)
     assert _checkpoint_extra(resumed / "checkpoints" / "step_00000003")["initial_states_begun"] == 3
 
-    older = tmp_path / "older"  # a checkpoint from before the count was saved: the envs start again, as it says
-    shutil.copytree(resumed / "checkpoints" / "step_00000002", older / "checkpoints" / "step_00000002")
-    state_file = older / "checkpoints" / "step_00000002" / TRAINER_FILE
-    state = torch.load(state_file, weights_only=False)
-    del state["extra"]["initial_states_begun"]
-    torch.save(state, state_file)
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={older}", f"demos.dir={pick_demos}", *COMMON,
-                      "checkpoint.resume=true", "collector.total_env_steps=20", "eval.episodes=0")  # nothing left to run
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "they start again from env.train_seed" in proc.stdout
+    assert old.returncode == 0, old.stderr[-3000:]
+    assert "they start again from env.train_seed" in old.stdout
 
 
 def _checkpoint_extra(path: Path) -> dict:
@@ -971,15 +972,36 @@ def _logged(run_dir: Path, name: str) -> list[tuple[str, str]]:
     return [tuple(row.split(",")[:2]) for row in rows]
 
 
+NOISY_RETURN_TO_GO = ["eval.episodes=0", "collector.action_noise=0.1", "advantage.estimator=return_to_go",
+                      "loss.rwr.weighting=signed", "loss.rwr.standardize_advantage=true"]
+FAILING = [*COMMON, "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2"]
+
+
+@pytest.fixture(scope="module")
+def overlap_runs(toy_pretrain_run, pick_demos, tmp_path_factory) -> tuple[Path, dict[str, RecipeRun]]:
+    """Runs with ``collector.overlap``, all in one process: each mode's toy run and its resumption to 50 env
+    steps; each mode's run with execution noise; a run whose env worker fails (last). Returns their root directory
+    (each run in ``root / name``) and each run's output by name."""
+    root = tmp_path_factory.mktemp("overlap")
+    runs = {}
+    for overlap in ("true", "process"):
+        runs[overlap] = [*COMMON, f"collector.overlap={overlap}"]
+        runs[f"{overlap}_resumed"] = [*COMMON[:3], "collector.total_env_steps=50", "collector.decisions_per_batch=2",
+                                      "checkpoint.interval=1", "checkpoint.keep=5", "checkpoint.resume=true",
+                                      f"collector.overlap={overlap}"]
+    for overlap in ("thread", "process"):
+        runs[f"noisy_{overlap}"] = [*COMMON, *NOISY_RETURN_TO_GO, f"collector.overlap={overlap}"]
+    runs["failing_process"] = [*FAILING, "collector.overlap=process"]
+    done = run_recipes(*([f"pretrained={toy_pretrain_run}", f"run_dir={root / name.removesuffix('_resumed')}",
+                          f"demos.dir={pick_demos}", *overrides] for name, overrides in runs.items()))
+    return root, dict(zip(runs, done))
+
+
 @pytest.mark.parametrize("overlap, where", [("true", "a background thread"), ("process", "a process of its own")])
-def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run, toy_pretrain_run, pick_demos, tmp_path,
-                                                                       overlap, where):
+def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run, overlap_runs, overlap, where):
     """collector.overlap: the same run as ``rwr_run`` with each next batch collected during the updates."""
-    run_dir = tmp_path / "overlap"
-    args = [f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", f"collector.overlap={overlap}"]
-    proc, resumed = run_recipes([*args, *COMMON], [*args, *COMMON[:3], "collector.total_env_steps=50",
-                                                   "collector.decisions_per_batch=2", "checkpoint.interval=1",
-                                                   "checkpoint.keep=5", "checkpoint.resume=true"])
+    root, runs = overlap_runs
+    run_dir, proc, resumed = root / overlap, runs[overlap], runs[f"{overlap}_resumed"]
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"each batch is collected in {where} while the previous batch's updates run" in proc.stdout
     assert "done: 30 env steps, 6 updates" in proc.stdout
@@ -1006,19 +1028,14 @@ def test_overlapped_collection_trains_evaluates_checkpoints_and_resumes(rwr_run,
     assert "training episodes continue from initial state 3" in resumed.stdout
 
 
-def test_overlapped_collection_with_execution_noise_is_the_same_run_in_a_thread_and_in_a_process(
-        toy_pretrain_run, pick_demos, tmp_path):
+def test_overlapped_collection_with_execution_noise_is_the_same_run_in_a_thread_and_in_a_process(overlap_runs):
     """Greedy chunks with their own noise RNG draw nothing from the RNG the updates use, and the collector's process
     continues the learner's noise RNG: the run in a thread and in a process are the same, bit for bit."""
-    names = ("thread", "process")
-    runs = run_recipes(*([f"pretrained={toy_pretrain_run}", f"run_dir={tmp_path / name}", f"demos.dir={pick_demos}",
-                          *COMMON, "eval.episodes=0", f"collector.overlap={name}", "collector.action_noise=0.1",
-                          "advantage.estimator=return_to_go", "loss.rwr.weighting=signed",
-                          "loss.rwr.standardize_advantage=true"] for name in names))
+    root, runs = overlap_runs
     logs = []
-    for name, proc in zip(names, runs):
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        logs.append([_logged(tmp_path / name, key) for key in ("chunk_reward", "loss", "grad_norm")])
+    for name in ("noisy_thread", "noisy_process"):
+        assert runs[name].returncode == 0, runs[name].stderr[-3000:]
+        logs.append([_logged(root / name, key) for key in ("chunk_reward", "loss", "grad_norm")])
     assert logs[0] == logs[1] and len(logs[0][1]) == 3
 
 
@@ -1299,11 +1316,16 @@ def test_critic_warmup_trains_the_critic_alone_and_keeps_its_rollouts_out_of_the
 
 @pytest.mark.parametrize("overlap", ["false", "process"])  # a thread's error reaches the same except (test_collect_ahead)
 def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy_pretrain_run, pick_demos, tmp_path,
-                                                                             overlap):
-    run_dir = tmp_path / "failing"
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON,
-                      "eval.episodes=0", "debug.fail_after_env_steps=8", "env.num_workers=2",
-                      f"collector.overlap={overlap}")
+                                                                             request, overlap):
+    """Collected by the recipe's own process, from the command line; in a collector process, the last of the
+    overlap runs' process."""
+    if overlap == "false":
+        run_dir = tmp_path / "failing"
+        proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *FAILING,
+                          "collector.overlap=false")
+    else:
+        root, runs = request.getfixturevalue("overlap_runs")
+        run_dir, proc = root / "failing_process", runs["failing_process"]
     assert proc.returncode != 0
     assert "collection failed after" in proc.stderr and "injected env failure" in proc.stderr
     assert "checkpoint.resume=true" in proc.stderr
