@@ -301,7 +301,7 @@ def common(run_dir, demos) -> list[str]:
 
 @pytest.fixture(scope="module")
 def toy_runs(pick_demos, tmp_path_factory) -> dict[str, Path]:
-    """Four toy steps of each algo, checkpoints at 2 and 4, a one-episode evaluation at the end."""
+    """Four toy steps of each algo, all in one process: checkpoints at 2 and 4, a one-episode evaluation at the end."""
     runs = {algo: tmp_path_factory.mktemp(algo) / "run" for algo in sorted(ALGOS)}
     done = run_in_one_process(RECIPE, [[f"algo={algo}", *common(run_dir, pick_demos), "eval.episodes=1",
                                         "eval.max_episode_steps=6"] for algo, run_dir in runs.items()])

@@ -45,6 +45,11 @@ def run_recipe(*overrides, timeout=600) -> subprocess.CompletedProcess:
                           timeout=timeout)
 
 
+def toy_args(pretrained: Path, demos: Path, run_dir: Path, overrides: list[str]) -> list[str]:
+    """The toy recipe's command-line arguments: from ``pretrained`` on ``demos`` into ``run_dir``, with ``overrides``."""
+    return [f"pretrained={pretrained}", f"run_dir={run_dir}", f"demos.dir={demos}", *overrides]
+
+
 def run_recipes(*runs: list) -> list[RecipeRun]:
     """Each list of overrides in ``runs``, run in order in one process (tests/recipe_runs.py)."""
     return run_in_one_process(RECIPE, [list(map(str, overrides)) for overrides in runs])
@@ -873,7 +878,7 @@ COMMON = ["eval.episodes=1", "eval.max_episode_steps=10", "env.max_episode_steps
 @pytest.fixture(scope="module")
 def rwr_run(toy_pretrain_run, pick_demos, tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("finetune") / "rwr"
-    proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *COMMON)
+    proc = run_recipe(*toy_args(toy_pretrain_run, pick_demos, run_dir, COMMON))
     assert proc.returncode == 0, proc.stderr[-3000:]
     return run_dir
 
@@ -936,7 +941,7 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     saved, the simulator's, is a fresh episode either way, from the initial state after those the first part began,
     as in the uninterrupted run (not the run's first one again)."""
     resumed = tmp_path / "resumed"
-    args = [f"pretrained={toy_pretrain_run}", f"run_dir={resumed}", f"demos.dir={pick_demos}", *COMMON]
+    args = toy_args(toy_pretrain_run, pick_demos, resumed, COMMON)
     older = tmp_path / "older"  # a checkpoint from before the count was saved: the envs start again, as it says
     shutil.copytree(rwr_run / "checkpoints" / "step_00000002", older / "checkpoints" / "step_00000002")
     state_file = older / "checkpoints" / "step_00000002" / TRAINER_FILE
@@ -945,8 +950,8 @@ def test_resume_continues_from_the_saved_counters(rwr_run, toy_pretrain_run, pic
     torch.save(state, state_file)
     first, proc, old = run_recipes(
         [*args, "collector.total_env_steps=20"], [*args, "checkpoint.resume=true"],
-        [f"pretrained={toy_pretrain_run}", f"run_dir={older}", f"demos.dir={pick_demos}", *COMMON,
-         "checkpoint.resume=true", "collector.total_env_steps=20", "eval.episodes=0"])  # nothing left to run
+        toy_args(toy_pretrain_run, pick_demos, older, [*COMMON, "checkpoint.resume=true", "collector.total_env_steps=20",
+                                                       "eval.episodes=0"]))  # nothing left to run
     assert first.returncode == 0, first.stderr[-3000:]
     assert _checkpoint_extra(resumed / "checkpoints" / "step_00000002")["initial_states_begun"] == 2
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -992,8 +997,8 @@ def overlap_runs(toy_pretrain_run, pick_demos, tmp_path_factory) -> tuple[Path, 
     for overlap in ("thread", "process"):
         runs[f"noisy_{overlap}"] = [*COMMON, *NOISY_RETURN_TO_GO, f"collector.overlap={overlap}"]
     runs["failing_process"] = [*FAILING, "collector.overlap=process"]
-    done = run_recipes(*([f"pretrained={toy_pretrain_run}", f"run_dir={root / name.removesuffix('_resumed')}",
-                          f"demos.dir={pick_demos}", *overrides] for name, overrides in runs.items()))
+    done = run_recipes(*(toy_args(toy_pretrain_run, pick_demos, root / name.removesuffix("_resumed"), overrides)
+                         for name, overrides in runs.items()))
     return root, dict(zip(runs, done))
 
 
@@ -1071,12 +1076,13 @@ def test_overlap_benchmark_times_both_loops_on_real_fine_tuning_runs(toy_pretrai
 def test_weight_average_is_evaluated_and_saved_beside_the_unchanged_training_and_resumes(
         rwr_run, toy_pretrain_run, pick_demos, tmp_path):
     averaged, resumed = tmp_path / "ema", tmp_path / "resumed"
-    args = [f"pretrained={toy_pretrain_run}", f"demos.dir={pick_demos}", *COMMON, "ema.enabled=true"]
+    averaging = [*COMMON, "ema.enabled=true"]
     # the resumed run: the same run stopped after iteration 2 (the averaged run's first two, bit for bit:
     # test_resume_continues_from_the_saved_counters), then continued to the budget
-    proc, stopped, again = run_recipes([*args, f"run_dir={averaged}"],
-                                       [*args, f"run_dir={resumed}", "collector.total_env_steps=20"],
-                                       [*args, f"run_dir={resumed}", "checkpoint.resume=true"])
+    proc, stopped, again = run_recipes(
+        toy_args(toy_pretrain_run, pick_demos, averaged, averaging),
+        toy_args(toy_pretrain_run, pick_demos, resumed, [*averaging, "collector.total_env_steps=20"]),
+        toy_args(toy_pretrain_run, pick_demos, resumed, [*averaging, "checkpoint.resume=true"]))
     assert proc.returncode == 0, proc.stderr[-3000:]
     for name in ("chunk_reward", "loss", "grad_norm"):  # the same rollouts and updates as the run without an average
         assert _logged(averaged, name) == _logged(rwr_run, name)
@@ -1158,8 +1164,7 @@ def variant_runs(toy_pretrain_run, pick_demos, tmp_path_factory) -> VariantRuns:
     runs["ensemble"] = [*COMMON, *NOISY_SIGNED_PRIVILEGED, ensemble]
     runs["ensemble_without_noise"] = ["collector.action_noise=0", ensemble]
     runs["ensemble_with_ppo"] = ["algo=ppo", "collector.action_noise=0", ensemble]
-    done = run_recipes(*([f"pretrained={toy_pretrain_run}", f"run_dir={root / name}", f"demos.dir={pick_demos}", *overrides]
-                         for name, overrides in runs.items()))
+    done = run_recipes(*(toy_args(toy_pretrain_run, pick_demos, root / name, overrides) for name, overrides in runs.items()))
     return VariantRuns(root, dict(zip(runs, done)), partner)
 
 
@@ -1199,9 +1204,9 @@ def test_advantage_variants_run(variant_runs, toy_pretrain_run, pick_demos, name
         assert len(rows) and not torch.equal(advantage, to_go)
         kept = load_checkpoint(root / name).trainer_state["extra"]["advantage_baseline"]
         assert kept["episodes"] == 4 and 2 <= len(kept["window"]) <= 4  # checkpointed for a resume
-        common = (f"pretrained={toy_pretrain_run}", f"run_dir={root / name}", f"demos.dir={pick_demos}",
-                  *(o for o in overrides if not o.startswith("advantage.baseline_episodes")),
-                  "env.max_episode_steps=10", "checkpoint.resume=true")
+        common = toy_args(toy_pretrain_run, pick_demos, root / name,
+                          [*(o for o in overrides if not o.startswith("advantage.baseline_episodes")),
+                           "env.max_episode_steps=10", "checkpoint.resume=true"])
         shorter, off = run_recipes(
             [*common, "advantage.baseline_episodes=2", f"collector.total_env_steps={steps + 30}"],
             [*common, "advantage.baseline_episodes=0", "loss.rwr.standardize_advantage=true",
@@ -1321,8 +1326,7 @@ def test_env_failure_ends_the_run_with_a_clear_message_and_a_loadable_buffer(toy
     overlap runs' process."""
     if overlap == "false":
         run_dir = tmp_path / "failing"
-        proc = run_recipe(f"pretrained={toy_pretrain_run}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *FAILING,
-                          "collector.overlap=false")
+        proc = run_recipe(*toy_args(toy_pretrain_run, pick_demos, run_dir, [*FAILING, "collector.overlap=false"]))
     else:
         root, runs = request.getfixturevalue("overlap_runs")
         run_dir, proc = root / "failing_process", runs["failing_process"]
@@ -1365,15 +1369,10 @@ BAD_CONFIGS = [
 ]
 
 
-def bad_config_run(pretrained: Path, pick_demos: Path, run_dir: Path, overrides: list[str]) -> list[str]:
-    """The toy recipe from ``pretrained`` on ``pick_demos``, with ``overrides``."""
-    return [f"pretrained={pretrained}", f"run_dir={run_dir}", f"demos.dir={pick_demos}", *overrides]
-
-
 @pytest.fixture(scope="module")
 def bad_config_errors(toy_pretrain_run, pick_demos, tmp_path_factory) -> dict[str, str | None]:
     """The error the recipe ends each of ``BAD_CONFIGS`` with, all run in one process (tests/recipe_runs.py)."""
-    return errors_by_config(RECIPE, BAD_CONFIGS, partial(bad_config_run, toy_pretrain_run, pick_demos),
+    return errors_by_config(RECIPE, BAD_CONFIGS, partial(toy_args, toy_pretrain_run, pick_demos),
                             tmp_path_factory.mktemp("bad_configs"))
 
 
@@ -1384,7 +1383,7 @@ def test_bad_configs_fail_with_one_clear_error(bad_config_errors, overrides, mes
 
 def test_a_bad_config_on_the_command_line_exits_with_its_message(toy_pretrain_run, pick_demos, tmp_path):
     overrides, message = BAD_CONFIGS[0]
-    proc = run_recipe(*bad_config_run(toy_pretrain_run, pick_demos, tmp_path / "bad", overrides))
+    proc = run_recipe(*toy_args(toy_pretrain_run, pick_demos, tmp_path / "bad", overrides))
     assert proc.returncode != 0 and message in proc.stderr
 
 
