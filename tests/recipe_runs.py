@@ -7,8 +7,8 @@ after that. These helpers start one subprocess for a list of runs instead. It co
 configuration with Hydra's compose API (the same config files and override grammar as the command line)
 and calls the recipe's ``main`` on it, in the order given, so a later run may resume an earlier one. Each
 run's stdout and stderr (file descriptors 1 and 2, so what its child processes, env workers or a collector
-process, write as well) are captured on their own; an exception ends that run alone, with exit status 1
-and its traceback on its stderr, as the command line would.
+process, write as well; each run starts its own fork server for them) are captured on their own; an
+exception ends that run alone, with exit status 1 and its traceback on its stderr, as the command line would.
 
 Each recipe's tests keep runs from the command line as well: the end-to-end run and a bad configuration, for
 the path through Hydra's entry point to the user's terminal.
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import multiprocessing.forkserver
 import os
 import subprocess
 import sys
@@ -114,6 +115,10 @@ def _run_all(recipe: Path, config_name: str, runs: list[list[str]], out_dir: Pat
                 if not (isinstance(err, SystemExit) and err.code in (0, None)):  # sys.exit(0) ran through
                     traceback.print_exc()
                     returncode, error = 1, f"{type(err).__name__}: {err}"
+            finally:
+                # the fork server that a run's simulator workers come from (mmada_rl.envs.workers) writes where this
+                # run's descriptors 1 and 2 pointed when it started: the next run starts its own
+                multiprocessing.forkserver._forkserver._stop()
         results.append({"returncode": returncode, "stdout": stdout.read_text(errors="replace"),
                         "stderr": stderr.read_text(errors="replace"), "error": error})
     return results

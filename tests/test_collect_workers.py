@@ -1,4 +1,4 @@
-"""parallel_attempts: episode attempts in spawned processes, handed back in seed order; collect(workers=...)."""
+"""parallel_attempts: episode attempts in worker processes, handed back in seed order; collect(workers=...)."""
 from __future__ import annotations
 
 import os
@@ -104,7 +104,7 @@ def test_a_failing_worker_ends_the_attempts_with_its_seed_and_message(make, mess
 
 @pytest.mark.slow
 def test_collect_with_two_workers_records_the_seeds_in_order_and_resumes(tmp_path):
-    """Real ManiSkill envs in two spawned workers: random-policy episodes (every one kept) in seed order, the
+    """Real ManiSkill envs in two worker processes: random-policy episodes (every one kept) in seed order, the
     metadata one process would write, and a resumed run continuing from its ``next_seed``. State observations:
     a process's first rendered frame costs ~12 s of CPU here (tests/recipe_runs.py), and what is tested is the
     workers' order and resumption."""

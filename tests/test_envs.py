@@ -1,6 +1,9 @@
 """ManiSkill3 tasks as TorchRL envs: real SAPIEN simulation and CPU rendering."""
 from __future__ import annotations
 
+import multiprocessing.forkserver
+from pathlib import Path
+
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
@@ -8,6 +11,7 @@ from torchrl.envs.utils import check_env_specs
 from mmada_rl.envs.maniskill import EnvConfig, make_env, make_gym_env
 from mmada_rl.envs.tasks import SUPPORTED_TASKS, UnknownTaskError, task_spec
 from mmada_rl.envs.vulkan import VulkanUnavailableError
+from mmada_rl.envs.workers import START_METHOD_VARIABLE, worker_context
 from mmada_rl.keys import IMAGE_KEY, INSTRUCTION_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 
 
@@ -146,16 +150,33 @@ def test_missing_vulkan_device_gets_the_doctor_message(monkeypatch):
         make_gym_env(EnvConfig())
 
 
+def _parent_pid(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
 @pytest.mark.slow
 def test_parallel_env_passes_spec_check():
     env = make_env("PickCube-v1", num_workers=2)
     try:
+        # the workers were forked by the fork server (mmada_rl.envs.workers), not spawned by this process
+        server = multiprocessing.forkserver._forkserver._forkserver_pid
+        assert server is not None and [_parent_pid(p.pid) for p in env._workers] == [server, server]
         check_env_specs(env)
         td = env.rollout(2)
         assert td.batch_size == (2, 2)
         assert td[IMAGE_KEY].shape == (2, 2, 3, 64, 64)
     finally:
         env.close()
+
+
+def test_worker_start_method_is_the_fork_server_unless_the_environment_asks_for_spawn(monkeypatch):
+    monkeypatch.delenv(START_METHOD_VARIABLE, raising=False)
+    assert worker_context().get_start_method() == "forkserver"
+    monkeypatch.setenv(START_METHOD_VARIABLE, "spawn")
+    assert worker_context().get_start_method() == "spawn"
+    monkeypatch.setenv(START_METHOD_VARIABLE, "fork")
+    with pytest.raises(ValueError, match=r"MMADA_RL_WORKER_START='fork': simulator workers start by forkserver or spawn"):
+        worker_context()
 
 
 def test_readme_environment_snippet():

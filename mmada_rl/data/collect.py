@@ -110,7 +110,7 @@ def collect(
         raise ValueError(f"episodes must be positive, got {episodes}.")
     if workers < 1 or (workers > 1 and torchrl_policy is not None):
         raise ValueError(f"workers must be a positive number of processes (1 with a TorchRL policy object, which "
-                         f"the spawned workers cannot rebuild), got {workers}.")
+                         f"the worker processes cannot rebuild), got {workers}.")
     only_success = (policy in ("planner", "scripted") and torchrl_policy is None) if only_success is None else only_success
     cfg_in = cfg
     source = make_source(cfg, policy, torchrl_policy, keep_after_success, action_noise, checkpoint)

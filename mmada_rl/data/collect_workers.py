@@ -1,4 +1,4 @@
-"""Episode attempts run side by side in spawned processes, handed back in seed order.
+"""Episode attempts run side by side in worker processes, handed back in seed order.
 
 :func:`~mmada_rl.data.collect.collect` tries one env seed after another and
 keeps the episodes that pass. An attempt is set by its seed (the env
@@ -25,6 +25,7 @@ from multiprocessing.connection import Connection, wait
 from typing import Callable, Iterator
 
 from mmada_rl.data.sources import Attempt
+from mmada_rl.envs.workers import worker_context
 
 
 class CollectionWorkerError(RuntimeError):
@@ -32,7 +33,7 @@ class CollectionWorkerError(RuntimeError):
 
 
 def error_reply(err: BaseException, where: str) -> tuple[str, str]:
-    """The ``("error", message)`` a spawned process sends its parent for ``err``: its type, its text and the
+    """The ``("error", message)`` a worker process sends its parent for ``err``: its type, its text and the
     process's traceback (lost in the parent), headed by ``where`` it was raised. Called in the ``except`` block."""
     return "error", f"{type(err).__name__}: {err}\n--- in the {where} ---\n{traceback.format_exc()}"
 
@@ -65,7 +66,7 @@ def _serve(conn: Connection, make_source: Callable) -> None:
 def parallel_attempts(make_source: Callable, workers: int, first_seed: int, limit: int,
                       start_timeout: float = 600.0) -> Iterator[tuple[int, Attempt]]:
     """Yield ``(seed, attempt)`` for seeds ``first_seed, first_seed + 1, ...`` (at most ``limit``), in that order,
-    each attempted by one of ``workers`` spawned processes.
+    each attempted by one of ``workers`` processes (started by :func:`~mmada_rl.envs.workers.worker_context`).
 
     Args:
         make_source: a picklable callable that builds the episode source (``source(seed) -> Attempt``) in a worker.
@@ -83,7 +84,7 @@ def parallel_attempts(make_source: Callable, workers: int, first_seed: int, limi
     """
     if workers < 1:
         raise ValueError(f"workers must be positive, got {workers}.")
-    ctx = mp.get_context("spawn")  # fork deadlocks SAPIEN
+    ctx = worker_context()  # not forked from here: fork deadlocks SAPIEN
     end, lookahead = first_seed + max(int(limit), 0), 2 * workers  # seeds in flight or waiting to be taken, at most
     procs: dict[Connection, mp.Process] = {}
     busy: dict[Connection, int] = {}  # worker -> the seed it is attempting

@@ -27,6 +27,7 @@ from mmada_rl.envs.instruction import InstructionTransform
 from mmada_rl.envs.tasks import task_option, task_spec
 from mmada_rl.keys import GROUP_KEY, IMAGE_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
 from mmada_rl.envs.vulkan import VulkanUnavailableError, is_render_device_error
+from mmada_rl.envs.workers import worker_context
 
 ObsMode = Literal["rgb", "state"]
 RewardMode = Literal["dense", "sparse"]
@@ -372,10 +373,10 @@ def make_env(task: str | EnvConfig = "PickCube-v1", *, extra_transform: Callable
         cfg = EnvConfig(**{**cfg.to_dict(), **overrides})
     if cfg.num_workers == 1:
         return _make_single_env(cfg, extra_transform=extra_transform)
-    # ``spawn`` (ParallelEnv's default): ``fork`` deadlocks SAPIEN at the first reset.
+    # forked from a server with the imports done (mmada_rl.envs.workers): ``fork`` from here deadlocks SAPIEN.
     # device="cpu": without a device, TorchRL 0.14.1 fails to stack a rollout whose episode ends mid-chunk
     factories = [_EnvFactory(cfg, worker, extra_transform) for worker in range(cfg.num_workers)]
-    return ParallelEnv(cfg.num_workers, factories, mp_start_method="spawn", device="cpu")
+    return ParallelEnv(cfg.num_workers, factories, mp_start_method=worker_context().get_start_method(), device="cpu")
 
 
 class _EnvFactory:

@@ -6,7 +6,8 @@ one process (the actor decodes a chunk in many small ops, and TensorDict's
 bookkeeping is Python), so the updates run ~1.5x slower beside it.
 :class:`CollectAheadProcess` keeps :class:`CollectAhead`'s interface and its
 one-batch-ahead schedule, but the collector (TorchRL's ``Collector``, its env
-and a copy of the policy) lives in a spawned process:
+and a copy of the policy) lives in a process of its own
+(started as :mod:`mmada_rl.envs.workers` starts simulator workers):
 
 * :meth:`~CollectAheadProcess.start` sends the learner's current weights (a
   ``state_dict``) and the states of the collection's RNGs (named generators,
@@ -38,7 +39,6 @@ Examples (``factory``: a picklable callable returning :class:`CollectorParts`, s
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import pickle
 import time
 from collections.abc import Callable, Iterator
@@ -48,6 +48,7 @@ from typing import Any
 import torch
 
 from mmada_rl.data.collect_workers import error_reply
+from mmada_rl.envs.workers import worker_context
 
 __all__ = ["CollectAheadProcess", "CollectorParts", "CollectorProcessError"]
 
@@ -120,7 +121,7 @@ def _serve(conn, factory: Callable[[], CollectorParts], num_threads: int) -> Non
 
 
 class CollectAheadProcess:
-    """Runs a collector one batch ahead of the caller, in a spawned process.
+    """Runs a collector one batch ahead of the caller, in a process of its own.
 
     Args:
         factory: a picklable callable that builds the :class:`CollectorParts` in the new process.
@@ -138,7 +139,7 @@ class CollectAheadProcess:
     def __init__(self, factory: Callable[[], CollectorParts], weights: Callable[[], dict],
                  generators: dict[str, torch.Generator] | None = None, num_threads: int = 1,
                  start_timeout: float = 600.0) -> None:
-        ctx = mp.get_context("spawn")  # fork deadlocks SAPIEN, and would copy the learner's threads
+        ctx = worker_context()  # not forked from here: fork deadlocks SAPIEN, and would copy the learner's threads
         self._conn, child = ctx.Pipe()
         self._weights, self._generators = weights, dict(generators or {})
         self._proc = ctx.Process(target=_serve, args=(child, factory, int(num_threads)), name="collect-ahead", daemon=False)
