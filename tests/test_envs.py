@@ -158,10 +158,9 @@ def _parent_pid(pid: int) -> int:
 def test_parallel_env_passes_spec_check():
     env = make_env("PickCube-v1", num_workers=2)
     try:
-        # the workers were forked by the fork server (mmada_rl.envs.workers), not spawned by this process
+        check_env_specs(env)  # starts the workers: they were forked by the fork server (mmada_rl.envs.workers)
         server = multiprocessing.forkserver._forkserver._forkserver_pid
         assert server is not None and [_parent_pid(p.pid) for p in env._workers] == [server, server]
-        check_env_specs(env)
         td = env.rollout(2)
         assert td.batch_size == (2, 2)
         assert td[IMAGE_KEY].shape == (2, 2, 3, 64, 64)
