@@ -9,9 +9,10 @@ the fine-tuning collector's process
 They cannot be forked from the process that asks for them: ``fork`` deadlocks
 SAPIEN at the first reset once the parent has a simulator, and would copy the
 learner's threads. A spawned process is safe but starts from nothing: it imports
-torch, tensordict, TorchRL and ManiSkill again, ~5 s of CPU on these machines
-before it builds its env. :func:`worker_context` uses Python's ``forkserver``
-start method instead: the first worker starts one server process, fresh like a
+torch, tensordict, TorchRL and ManiSkill again before it builds its env (a third
+of a rendering worker's start-up CPU here, ~9 s: ``benchmarks/worker_start.py``).
+:func:`worker_context` uses Python's ``forkserver`` start method instead: the
+first worker starts one server process, fresh like a
 spawned one, that imports :data:`PRELOAD` once; each worker is then forked from
 that server, which has never built a simulator or run torch's thread pools, with
 the imports done. Every later worker of the same parent process (the second
@@ -20,6 +21,12 @@ starts without importing them again.
 
 What each worker does once it has started is unchanged: it builds its own
 simulator from the picklable factory it was given, as a spawned one would.
+
+The server keeps the standard output and error that its parent had when it
+started, and so do the workers forked from it: a process that redirects its file
+descriptors 1 and 2 later (the tests' batched recipe runs do, per run) stops the
+server first (``multiprocessing.forkserver._forkserver._stop()``) for the next
+workers to write to the new place.
 
 ``MMADA_RL_WORKER_START=spawn`` in the environment starts them spawned instead
 (where ``forkserver`` is unavailable, or to compare: ``benchmarks/worker_start.py``).
