@@ -32,9 +32,8 @@ METHODS = ("spawn", "forkserver")
 
 def child(args) -> dict:
     """One process's measurement (run with ``MMADA_RL_WORKER_START`` set by the parent)."""
-    import multiprocessing.forkserver as forkserver
-
     from mmada_rl.envs.maniskill import EnvConfig, make_env
+    from mmada_rl.envs.workers import stop_server
 
     cfg = EnvConfig(task=args.task, obs_mode=args.obs_mode, num_workers=args.workers)
     seconds = []
@@ -45,7 +44,7 @@ def child(args) -> dict:
         env.rollout(args.steps, break_when_any_done=False)
         seconds.append(time.perf_counter() - start)
         env.close()
-    forkserver._forkserver._stop()  # waits for the server, so that its CPU (and its reaped workers') is counted
+    stop_server()  # waits for the server, so that its CPU (and its reaped workers') is counted
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return {"start_s": seconds, "own_cpu_s": own.ru_utime + own.ru_stime, "children_cpu_s": kids.ru_utime + kids.ru_stime}
 
@@ -87,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(child(args)))
         return 0
     rows: dict[str, list[dict]] = {m: [] for m in METHODS}
-    passed = [a for a in (argv if argv is not None else sys.argv[1:])]
+    passed = list(argv if argv is not None else sys.argv[1:])
     for r in range(args.rounds):
         for method in METHODS if r % 2 == 0 else METHODS[::-1]:
             env = {**os.environ, "MMADA_RL_WORKER_START": method}

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing.forkserver
 import os
 import subprocess
 import sys
@@ -98,6 +97,8 @@ def _run_all(recipe: Path, config_name: str, runs: list[list[str]], out_dir: Pat
 
     from hydra import compose, initialize_config_dir
 
+    from mmada_rl.envs.workers import stop_server
+
     sys.path.insert(0, str(recipe.parent))  # the recipe imports its own utils module
     spec = importlib.util.spec_from_file_location(recipe.stem, recipe)
     module = importlib.util.module_from_spec(spec)
@@ -118,7 +119,7 @@ def _run_all(recipe: Path, config_name: str, runs: list[list[str]], out_dir: Pat
             finally:
                 # the fork server that a run's simulator workers come from (mmada_rl.envs.workers) writes where this
                 # run's descriptors 1 and 2 pointed when it started: the next run starts its own
-                multiprocessing.forkserver._forkserver._stop()
+                stop_server()
         results.append({"returncode": returncode, "stdout": stdout.read_text(errors="replace"),
                         "stderr": stderr.read_text(errors="replace"), "error": error})
     return results

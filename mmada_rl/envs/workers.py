@@ -25,8 +25,7 @@ simulator from the picklable factory it was given, as a spawned one would.
 The server keeps the standard output and error that its parent had when it
 started, and so do the workers forked from it: a process that redirects its file
 descriptors 1 and 2 later (the tests' batched recipe runs do, per run) stops the
-server first (``multiprocessing.forkserver._forkserver._stop()``) for the next
-workers to write to the new place.
+server first (:func:`stop_server`) for the next workers to write to the new place.
 
 ``MMADA_RL_WORKER_START=spawn`` in the environment starts them spawned instead
 (where ``forkserver`` is unavailable, or to compare: ``benchmarks/worker_start.py``).
@@ -34,10 +33,11 @@ workers to write to the new place.
 from __future__ import annotations
 
 import multiprocessing as mp
+import multiprocessing.forkserver
 import os
 from multiprocessing.context import BaseContext
 
-__all__ = ["PRELOAD", "START_METHOD_VARIABLE", "worker_context"]
+__all__ = ["PRELOAD", "START_METHOD_VARIABLE", "stop_server", "worker_context"]
 
 START_METHOD_VARIABLE = "MMADA_RL_WORKER_START"
 START_METHODS = ("forkserver", "spawn")  # never "fork": see above
@@ -68,3 +68,10 @@ def worker_context() -> BaseContext:
     if method == "forkserver":
         ctx.set_forkserver_preload(list(PRELOAD))
     return ctx
+
+
+def stop_server() -> None:
+    """Stop this process's fork server, if one runs, and wait for it to exit (so its CPU, and that of the workers
+    it reaped, counts as this process's children's); the next worker started starts a new one. Workers already
+    started keep running."""
+    multiprocessing.forkserver._forkserver._stop()  # CPython's own stop (private, used by its tests); no-op if none
