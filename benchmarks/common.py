@@ -5,6 +5,7 @@ import json
 import os
 import platform
 import shlex
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -47,6 +48,25 @@ def save_figure(fig, path: Path, **savefig_kwargs) -> Path:
     fig.savefig(path, dpi=120, **savefig_kwargs)
     plt.close(fig)
     return path
+
+
+def alternating_processes(script: str, argv: list[str], variable: str, values: tuple[str, ...], rounds: int,
+                          describe=lambda result: ", ".join(f"{k} {v:.1f}" for k, v in result.items())) -> dict[str, list[dict]]:
+    """Run ``script argv --child`` once per value of the environment ``variable`` in each of ``rounds`` rounds,
+    in alternating order (fresh processes, so none inherits another's warm state); each child prints its
+    measurement as JSON on its last line. Returns the measurements per value; exits with the child's error if one
+    fails.
+    """
+    rows: dict[str, list[dict]] = {value: [] for value in values}
+    for r in range(rounds):
+        for value in values if r % 2 == 0 else values[::-1]:
+            out = subprocess.run([sys.executable, os.path.abspath(script), *argv, "--child"],
+                                 env={**os.environ, variable: value}, capture_output=True, text=True, check=False)
+            if out.returncode != 0:
+                sys.exit(f"the {variable}={value} process failed:\n{out.stderr[-3000:]}")
+            rows[value].append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(f"round {r}: {value} {describe(rows[value][-1])}", flush=True)
+    return rows
 
 
 def flat_gradient(params: list, grads: list) -> "torch.Tensor":

@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import statistics
-import subprocess
 import sys
 import time
 
-from common import RESULTS, markdown_table, save_figure, write_results
+from common import RESULTS, alternating_processes, markdown_table, save_figure, write_results
 
 METHODS = ("spawn", "forkserver")
 
@@ -85,18 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         print(json.dumps(child(args)))
         return 0
-    rows: dict[str, list[dict]] = {m: [] for m in METHODS}
-    passed = list(argv if argv is not None else sys.argv[1:])
-    for r in range(args.rounds):
-        for method in METHODS if r % 2 == 0 else METHODS[::-1]:
-            env = {**os.environ, "MMADA_RL_WORKER_START": method}
-            out = subprocess.run([sys.executable, os.path.abspath(__file__), *passed, "--child"], env=env,
-                                 capture_output=True, text=True, check=False)
-            if out.returncode != 0:
-                sys.exit(f"the {method} process failed:\n{out.stderr[-3000:]}")
-            rows[method].append(json.loads(out.stdout.strip().splitlines()[-1]))
-            print(f"round {r}: {method} starts {[round(s, 1) for s in rows[method][-1]['start_s']]} s, "
-                  f"started processes' CPU {rows[method][-1]['children_cpu_s']:.1f} s", flush=True)
+    rows = alternating_processes(
+        __file__, list(argv if argv is not None else sys.argv[1:]), "MMADA_RL_WORKER_START", METHODS, args.rounds,
+        lambda r: f"starts {[round(s, 1) for s in r['start_s']]} s, started processes' CPU {r['children_cpu_s']:.1f} s")
     med = statistics.median
     table = []
     for method in METHODS:

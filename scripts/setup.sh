@@ -159,12 +159,23 @@ ensure_vulkan() {
     log "Vulkan device: $device"
 }
 
+#: Compute SAPIEN's BRDF look-up table once for this machine, so that no process that renders computes it
+#: (mmada_rl/envs/brdf_lut.py: ~6 s the first time, read from the cache after).
+ensure_brdf_lut() {
+    local path
+    path="$(cd "$REPO" && "$VENV/bin/python" -c \
+        'from mmada_rl.envs.brdf_lut import brdf_lut, cache_path; brdf_lut(); print(cache_path())')" \
+        || die "could not compute the BRDF look-up table (error above)"
+    log "BRDF look-up table: $path"
+}
+
 main() {
     log "repository $REPO, virtual environment $VENV"
     ensure_venv
     ensure_torch
     ensure_package
     ensure_vulkan
+    ensure_brdf_lut
     log "done"
 }
 

@@ -1,9 +1,9 @@
 """Run a recipe several times in one process: its configurations one after another, each with its own output.
 
 A recipe started from the command line pays, before its first step, for Python, torch, TorchRL and ManiSkill
-imports (about 5 s on 2 cores) and for the first frame its process renders: SAPIEN computes its BRDF
-look-up table once per Vulkan context, about 12 s of CPU on lavapipe. A toy run does about 6 s of work
-after that. These helpers start one subprocess for a list of runs instead. It composes each run's
+imports (about 5 s on 2 cores) and for its first env and the first frame its process renders (about 3.5 s,
+with SAPIEN's BRDF look-up table read from the machine's cache: mmada_rl/envs/brdf_lut.py). A toy run does
+about 6 s of work after that. These helpers start one subprocess for a list of runs instead. It composes each run's
 configuration with Hydra's compose API (the same config files and override grammar as the command line)
 and calls the recipe's ``main`` on it, in the order given, so a later run may resume an earlier one. Each
 run's stdout and stderr (file descriptors 1 and 2, so what its child processes, env workers or a collector

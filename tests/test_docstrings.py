@@ -26,7 +26,7 @@ MODULES = _modules()
 RUNNABLE = {f"mmada_rl.{name}" for name in (
     "baselines.bc", "baselines.ddpm", "baselines.diffusion_policy", "baselines.encoders", "baselines.normalization",
     "baselines.rl", "data.augment", "diffusion.denoiser", "diffusion.forward_process", "diffusion.sampler",
-    "diffusion.schedules", "diffusion.visual", "envs.maniskill", "envs.workers", "objectives.advantages",
+    "diffusion.schedules", "diffusion.visual", "envs.brdf_lut", "envs.maniskill", "envs.workers", "objectives.advantages",
     "objectives.masked_diffusion", "objectives.path_ppo", "objectives.reward_weighted", "policy.actor",
     "policy.execution", "policy.value", "tokenizers.action_bins", "tokenizers.action_fsq", "tokenizers.action_vq",
     "tokenizers.fit", "tokenizers.image", "tokenizers.layout", "tokenizers.normalize", "tokenizers.text",

@@ -4,10 +4,12 @@ from __future__ import annotations
 import multiprocessing.forkserver
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
+from mmada_rl.envs.brdf_lut import LUT_VARIABLE, brdf_lut, cache_path, compute_brdf_lut, install
 from mmada_rl.envs.maniskill import EnvConfig, make_env, make_gym_env
 from mmada_rl.envs.tasks import SUPPORTED_TASKS, UnknownTaskError, task_spec
 from mmada_rl.envs.vulkan import VulkanUnavailableError
@@ -241,3 +243,127 @@ def test_stage_flags_follow_a_demonstration_through_grasp_and_placement(state_de
         plain.close()
     first = {name: next(i for i, f in enumerate(flags) if f[col]) for col, name in enumerate(("grasp", "placed", "success"))}
     assert first["grasp"] < first["placed"] <= first["success"], first
+
+
+# Renders PickCube-v1 in one fresh process twice: with SAPIEN's own BRDF table (the variable says "sapien", so
+# make_gym_env installs nothing), then with the cached one, counting the cameras that are given it. Prints JSON.
+_BRDF_FRAMES = """
+import json, os
+from mmada_rl.envs import brdf_lut
+from mmada_rl.envs.maniskill import EnvConfig, make_gym_env
+
+def frame():
+    env = make_gym_env(EnvConfig(task="PickCube-v1", image_size=128))
+    obs, _ = env.reset(seed=3)
+    env.close()
+    return obs["camera"]
+
+given = []
+texture = brdf_lut._texture
+brdf_lut._texture = lambda: given.append(1) or texture()
+os.environ[brdf_lut.LUT_VARIABLE] = "sapien"
+sapiens = frame()
+before = (brdf_lut.installed(), len(given))
+os.environ[brdf_lut.LUT_VARIABLE] = "cached"
+cached = frame()
+print(json.dumps({"before": before, "after": (brdf_lut.installed(), len(given)),
+                  "differ": int((cached != sapiens).sum()), "pixels": int(sapiens.size)}))
+"""
+
+
+@pytest.mark.slow
+def test_make_gym_env_gives_its_cameras_the_cached_brdf_table_and_renders_the_same_frames():
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _BRDF_FRAMES], capture_output=True, text=True, timeout=600, check=False)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["before"] == [False, 0]
+    assert result["after"] == [True, 2]  # the task's camera and the render camera
+    # ManiSkill's scenes have no environment map, which is all the table shades: the same frame, bit for bit
+    assert result["differ"] == 0, result
+
+
+@pytest.mark.slow
+def test_the_cached_brdf_table_shades_an_environment_map_as_sapiens_own(tmp_path):
+    import imageio.v3 as iio
+    import sapien
+
+    render = sapien.render
+    faces = []
+    for i in range(6):  # a colourful environment map: each face its own gradient
+        y, x = np.mgrid[0:32, 0:32]
+        faces.append(str(tmp_path / f"face{i}.png"))
+        iio.imwrite(faces[-1], np.stack([x * 8, y * 8, np.full_like(x, 40 * i)], -1).astype(np.uint8))
+    scene = sapien.Scene()
+    scene.render_system.cubemap = render.RenderCubemap(*faces)
+    for k, roughness in enumerate((0.05, 0.3, 0.6, 0.9)):  # mirror-like to matte metal spheres
+        builder = scene.create_actor_builder()
+        material = render.RenderMaterial(base_color=[0.8, 0.8, 0.8, 1], metallic=1.0, roughness=roughness)
+        builder.add_sphere_visual(radius=0.1, material=material)
+        builder.build_kinematic().set_pose(sapien.Pose([0, -0.33 + 0.22 * k, 0.1]))
+    tables = {"cached": brdf_lut(), "zero": np.zeros_like(brdf_lut())}
+    frames = {}
+    for name in ("sapien", *tables):
+        camera = render.RenderCameraComponent(96, 96)
+        entity = sapien.Entity()
+        entity.add_component(camera)
+        entity.set_pose(sapien.Pose([-0.6, 0, 0.2], [0.9848, 0, 0.1736, 0]))
+        scene.add_entity(entity)  # a camera takes textures once in a scene
+        if name in tables:
+            camera.set_texture("BRDFLUT", render.RenderTexture(tables[name], 2, "R16G16Sfloat", address_mode="edge"))
+        frames[name] = camera
+    scene.update_render()
+    for name, camera in frames.items():
+        camera.take_picture()
+        frames[name] = camera.get_picture("Color")[..., :3]
+    zero_error = np.abs(frames["zero"] - frames["sapien"])
+    cached_error = np.abs(frames["cached"] - frames["sapien"])
+    assert zero_error.max() > 0.3 and (zero_error > 0.01).mean() > 0.05  # the spheres shade with the table
+    # the same table up to its half floats' last bits: colours within 2**-12, a sixteenth of an 8-bit level, of
+    # SAPIEN's (an 8-bit frame may round the odd value near a half level the other way)
+    assert cached_error.max() < 2.0**-12, cached_error.max()
+
+
+def test_brdf_table_is_cached_on_disk_and_computed_again_when_unreadable(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    brdf_lut.cache_clear()
+    path = cache_path(16, 64)
+    assert path.parent == tmp_path / "mmada_rl" and not path.exists()
+    expected = compute_brdf_lut(16, 64)
+    np.testing.assert_array_equal(brdf_lut(16, 64), expected)
+    np.testing.assert_array_equal(np.load(path), expected)  # written for the next process
+    assert path.stat().st_mode & 0o777 == 0o644 and list(path.parent.iterdir()) == [path]  # no temporary file left
+
+    path.write_bytes(b"not a table")
+    brdf_lut.cache_clear()
+    np.testing.assert_array_equal(brdf_lut(16, 64), expected)
+    np.testing.assert_array_equal(np.load(path), expected)  # and replaced
+
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocked))  # a cache directory that cannot be made
+    brdf_lut.cache_clear()
+    np.testing.assert_array_equal(brdf_lut(16, 64), expected)
+    brdf_lut.cache_clear()
+
+
+def test_brdf_table_matches_the_shaders_integral_at_its_known_limits():
+    lut = compute_brdf_lut(64, 1024).astype(np.float64)
+    scale, bias = lut[..., 0], lut[..., 1]
+    # a smooth surface seen head-on reflects all the light: scale + bias -> 1
+    assert scale[-1, 0] + bias[-1, 0] == pytest.approx(1.0, abs=0.02)
+    assert (lut >= 0).all()
+    assert bias[0, 0] > bias[-1, 0]  # the Fresnel term grows at grazing angles
+    with pytest.raises(ValueError, match="size and samples must be positive"):
+        compute_brdf_lut(0, 1024)
+
+
+def test_brdf_table_source_is_the_cache_unless_the_environment_asks_for_sapiens(monkeypatch):
+    monkeypatch.setenv(LUT_VARIABLE, "sapien")
+    assert install() is False
+    monkeypatch.setenv(LUT_VARIABLE, "gpu")
+    with pytest.raises(ValueError, match=r"MMADA_RL_BRDF_LUT='gpu': expected one of cached, sapien"):
+        install()

@@ -23,6 +23,7 @@ from torchrl.data import Binary, Unbounded
 from torchrl.envs import Compose, GymWrapper, ParallelEnv, RenameTransform, StepCounter, Transform, TransformedEnv
 from torchrl.envs.gym_like import default_info_dict_reader
 
+from mmada_rl.envs.brdf_lut import install as install_brdf_lut
 from mmada_rl.envs.instruction import InstructionTransform
 from mmada_rl.envs.tasks import task_option, task_spec
 from mmada_rl.keys import GROUP_KEY, IMAGE_KEY, PRIVILEGED_STATE_KEY, STATE_KEY
@@ -292,6 +293,8 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
             kwargs["sensor_configs"]["base_camera"] = dict(fov=float(np.deg2rad(cfg.camera_fov)))
     if cfg.episode_steps is not None:
         kwargs["max_episode_steps"] = cfg.episode_steps
+    if cfg.obs_mode == "rgb" or render_mode is not None:
+        install_brdf_lut()  # its cameras shade with the table computed once per machine, not once per process
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
