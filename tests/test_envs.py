@@ -375,3 +375,42 @@ def test_brdf_table_source_is_the_cache_unless_the_environment_asks_for_sapiens(
     monkeypatch.setenv(LUT_VARIABLE, "gpu")
     with pytest.raises(ValueError, match=r"MMADA_RL_BRDF_LUT='gpu': expected one of cached, sapien"):
         install()
+
+
+def test_draws_under_the_torch_rng_lock_are_the_same_beside_env_resets_in_another_thread():
+    # ManiSkill's reset seeds torch's process-wide RNG with the episode's seed and puts it back; a thread drawing
+    # under TORCH_RNG_LOCK (the fine-tuning learner beside collector.overlap=thread) never sees one in between
+    import threading
+
+    from mmada_rl.envs.maniskill import TORCH_RNG_LOCK
+
+    def draws(n: int) -> list[float]:
+        out = []
+        for _ in range(n):
+            with TORCH_RNG_LOCK:
+                out.extend(torch.rand(4).tolist())
+        return out
+
+    env = make_gym_env(EnvConfig(task="PickCube-v1", obs_mode="state"))
+    try:
+        torch.manual_seed(0)
+        alone = draws(3000)
+        resets, stop = [0], threading.Event()
+
+        def reset_until_stopped():
+            while not stop.is_set():
+                env.reset(seed=resets[0])
+                resets[0] += 1
+
+        resetting = threading.Thread(target=reset_until_stopped)
+        torch.manual_seed(0)
+        resetting.start()
+        try:
+            beside = draws(3000)
+        finally:
+            stop.set()
+            resetting.join()
+    finally:
+        env.close()
+    assert resets[0] > 1  # the draws ran beside resets
+    assert beside == alone

@@ -11,6 +11,7 @@ TorchRL's canonical VLA schema::
 """
 from __future__ import annotations
 
+import threading
 import warnings
 from dataclasses import asdict, dataclass
 from collections.abc import Mapping
@@ -231,6 +232,23 @@ class FreshContactsOnReset(gym.Wrapper):
         return obs, {**info, **fresh}
 
 
+#: Held by every reset of a :func:`make_gym_env` env (:class:`ResetHoldsTorchRNG`). ManiSkill's reset seeds torch's
+#: process-wide RNG with the episode's seed and puts it back after (``torch.random.fork_rng``); one RNG serves all the
+#: threads of a process. A thread that draws from it while another resets an env in the same process (the
+#: fine-tuning recipe's ``collector.overlap=thread`` with the env in the process) would draw the episode's numbers,
+#: then have its own stream rewound: hold this lock to draw beside such a thread.
+TORCH_RNG_LOCK = threading.RLock()
+
+
+class ResetHoldsTorchRNG(gym.Wrapper):
+    """Reset under :data:`TORCH_RNG_LOCK`, so that the reset's use of torch's RNG never interleaves with another
+    thread's draws."""
+
+    def reset(self, **kwargs):
+        with TORCH_RNG_LOCK:
+            return self.env.reset(**kwargs)
+
+
 class SeedSchedule(gym.Wrapper):
     """Reset episode ``e`` with seed ``first_seed + e // group_size`` unless a seed is given.
 
@@ -305,7 +323,7 @@ def make_gym_env(cfg: EnvConfig, *, render_mode: str | None = None) -> gym.Env:
         raise
     except (AssertionError, KeyError) as err:
         raise ValueError(f"ManiSkill could not build {cfg.task!r} with control_mode={cfg.control_mode!r}: {err}") from err
-    env = FreshContactsOnReset(env)
+    env = ResetHoldsTorchRNG(FreshContactsOnReset(env))
     if cfg.obs_mode == "rgb":
         env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
     env = CPUGymWrapper(env, ignore_terminations=cfg.ignore_terminations)

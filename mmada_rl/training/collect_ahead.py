@@ -15,7 +15,11 @@ The acting policy must be a copy that nothing else touches while a batch is
 collected; :func:`acting_copy` makes one. Torch ops release the GIL, so the
 two threads run in parallel. Anything that must not run beside a collection
 (an evaluation that sets the process-wide exploration type, a checkpoint of an
-RNG the collection draws from) calls :meth:`CollectAhead.wait` first. An error
+RNG the collection draws from) calls :meth:`CollectAhead.wait` first. An env in
+the process resets in the collection thread, and ManiSkill's reset seeds torch's
+process-wide RNG and puts it back: the updates draw from that RNG under
+:data:`~mmada_rl.envs.maniskill.TORCH_RNG_LOCK`, which every reset holds, so that
+no reset falls between two of their draws. An error
 raised while collecting is raised again by :meth:`CollectAhead.take`.
 :class:`~mmada_rl.training.CollectAheadProcess` keeps this interface with the
 collector in a process of its own, where the learner and the actor do not

@@ -136,6 +136,7 @@ from utils import (
     split_batch,
     with_initial_states_begun,
 )
+from mmada_rl.envs.maniskill import TORCH_RNG_LOCK
 from mmada_rl.keys import SUCCESS_KEY, VALUE_TARGET_KEY
 from mmada_rl.policy.value import value_step
 
@@ -316,19 +317,22 @@ def main(cfg: DictConfig) -> None:
                 metrics["train/success_rate"] = float(batch.get(("next", SUCCESS_KEY)).reshape(-1)[ended].float().mean())
                 metrics["train/episodes"] = int(ended.sum())
 
-            absorb_success(cfg, batch)  # after the logged reward: the success's lasting value, for the advantages only
-            if gae is not None:
-                with torch.no_grad():
-                    gae(batch)
-                episodes = [batch]
-            else:
-                episodes = groups.add(batch)
-            parts = [decision_rows(model, ep) for ep in episodes if ep.numel()]
-            rows = torch.cat(parts) if parts else None  # decisions whose advantages are known
-            if rows is not None:
-                metrics["train/advantage_abs"] = float(rows.get("advantage").abs().mean())
+            # the collection thread's env resets seed torch's process-wide RNG and put it back: none runs in the
+            # middle of the learner's draws (TORCH_RNG_LOCK), so that they are the same whatever the timing
+            with TORCH_RNG_LOCK:
+                absorb_success(cfg, batch)  # after the logged reward: the success's lasting value, for the advantages only
                 if gae is not None:
-                    metrics["train/value_loss"] = update_value(cfg, value_op, value_optim, rows)
+                    with torch.no_grad():
+                        gae(batch)
+                    episodes = [batch]
+                else:
+                    episodes = groups.add(batch)
+                parts = [decision_rows(model, ep) for ep in episodes if ep.numel()]
+                rows = torch.cat(parts) if parts else None  # decisions whose advantages are known
+                if rows is not None:
+                    metrics["train/advantage_abs"] = float(rows.get("advantage").abs().mean())
+                    if gae is not None:
+                        metrics["train/value_loss"] = update_value(cfg, value_op, value_optim, rows)
 
             t1, stepped = time.perf_counter(), []  # each gradient step's losses and grad norm, averaged for the log
             lr = learning_rate(cfg, env_steps)  # optim.lr_decay=cosine: lower as the budget is spent
@@ -342,19 +346,22 @@ def main(cfg: DictConfig) -> None:
                     online.extend(rows)
                 model.train()
                 for _ in range(int(cfg.optim.updates_per_batch) if len(online) or not n_online else 0):
-                    with autocast(cfg.optim.precision):  # optim.precision=bf16: the forward pass in bfloat16
+                    with TORCH_RNG_LOCK, autocast(cfg.optim.precision):  # optim.precision=bf16: the forward in bfloat16
                         losses = loss_module(mixed_batch(model, online.sample() if n_online else None, demo_windows))
-                    stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
+                        stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
                     updates += 1
             elif rows is not None:  # PPO: a few epochs over the fresh decisions, then they are dropped
                 size = max(1, min(int(cfg.replay_buffer.batch_size), rows.shape[0]))
                 for _ in range(int(cfg.loss.ppo.epochs)):
-                    for idx in torch.randperm(rows.shape[0]).split(size):
-                        losses = loss_module(rows[idx])
-                        if demo_anchor is not None:  # the demonstrations' denoising loss, scaled by loss.ppo.demo_coef
-                            demo = demo_anchor(mixed_batch(model, None, demo_windows))
-                            losses.update({"loss_demo_action": demo["loss_action"], "loss_demo_goal": demo["loss_goal"]})
-                        stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
+                    with TORCH_RNG_LOCK:
+                        order = torch.randperm(rows.shape[0])
+                    for idx in order.split(size):
+                        with TORCH_RNG_LOCK:
+                            losses = loss_module(rows[idx])
+                            if demo_anchor is not None:  # the demonstrations' denoising loss, scaled by loss.ppo.demo_coef
+                                demo = demo_anchor(mixed_batch(model, None, demo_windows))
+                                losses.update({"loss_demo_action": demo["loss_action"], "loss_demo_goal": demo["loss_goal"]})
+                            stepped.append(gradient_step(cfg, model, optimizer, losses, ema))
                         updates += 1
             if stepped:  # means over the iteration's gradient steps (PPO's clip fraction and KL grow over its epochs)
                 metrics.update({f"train/{k}": sum(s[k] for s in stepped) / len(stepped) for k in stepped[0]})
