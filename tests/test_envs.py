@@ -9,7 +9,7 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from mmada_rl.envs.brdf_lut import LUT_VARIABLE, brdf_lut, cache_path, compute_brdf_lut, install
+from mmada_rl.envs.brdf_lut import LUT_VARIABLE, brdf_lut, cache_path, compute_brdf_lut, install, lut_texture
 from mmada_rl.envs.maniskill import EnvConfig, make_env, make_gym_env
 from mmada_rl.envs.tasks import SUPPORTED_TASKS, UnknownTaskError, task_spec
 from mmada_rl.envs.vulkan import VulkanUnavailableError
@@ -320,7 +320,7 @@ def test_the_cached_brdf_table_shades_an_environment_map_as_sapiens_own(tmp_path
         entity.set_pose(sapien.Pose([-0.6, 0, 0.2], [0.9848, 0, 0.1736, 0]))
         scene.add_entity(entity)  # a camera takes textures once in a scene
         if name in tables:
-            camera.set_texture("BRDFLUT", render.RenderTexture(tables[name], 2, "R16G16Sfloat", address_mode="edge"))
+            camera.set_texture("BRDFLUT", lut_texture(tables[name]))
         frames[name] = camera
     scene.update_render()
     for name, camera in frames.items():

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LUT_VARIABLE", "brdf_lut", "cache_path", "compute_brdf_lut", "install", "installed"]
+__all__ = ["LUT_VARIABLE", "brdf_lut", "cache_path", "compute_brdf_lut", "install", "installed", "lut_source", "lut_texture"]
 
 LUT_VARIABLE = "MMADA_RL_BRDF_LUT"
 LUT_SOURCES = ("cached", "sapien")
@@ -101,7 +101,7 @@ def cache_path(size: int = SIZE, samples: int = SAMPLES) -> Path:
 
 @functools.lru_cache(maxsize=None)
 def brdf_lut(size: int = SIZE, samples: int = SAMPLES) -> np.ndarray:
-    """:func:`compute_brdf_lut`'s table, read from :func:`cache_path` or computed (~7 s) and written there.
+    """:func:`compute_brdf_lut`'s table, read from :func:`cache_path` or computed (~5.5 s) and written there.
 
     The file is written whole under another name and then renamed, so processes that start together read
     either nothing or the whole table. A file that is not a table of the right shape is computed again; a
@@ -138,12 +138,18 @@ def lut_source() -> str:
     return source
 
 
-@functools.lru_cache(maxsize=None)
-def _texture():
-    """The table as a SAPIEN texture, one per process (made at the first camera, the render device up)."""
+def lut_texture(table: np.ndarray):
+    """``table`` (``(size, size, 2)`` float16) as the SAPIEN texture a camera takes for ``BRDFLUT``: two half floats
+    per texel, as svulkan2's own, sampled linearly and clamped at the edges."""
     import sapien
 
-    return sapien.render.RenderTexture(brdf_lut(), 2, "R16G16Sfloat", filter_mode="linear", address_mode="edge")
+    return sapien.render.RenderTexture(table, 2, "R16G16Sfloat", filter_mode="linear", address_mode="edge")
+
+
+@functools.lru_cache(maxsize=None)
+def _texture():
+    """:func:`brdf_lut`'s table as a texture, one per process (made at the first camera, the render device up)."""
+    return lut_texture(brdf_lut())
 
 
 def installed() -> bool:
